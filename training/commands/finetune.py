@@ -1,0 +1,13 @@
+"""`pointtrack finetune`."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Declare this command's flags."""
+
+
+def run(args: argparse.Namespace) -> int:
+    raise SystemExit("pointtrack finetune: not implemented yet")
