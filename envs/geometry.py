@@ -64,7 +64,11 @@ def rotation_z(yaw: np.ndarray | float) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     zeros, ones = np.zeros_like(c), np.ones_like(c)
     return np.stack(
-        [np.stack([c, -s, zeros], -1), np.stack([s, c, zeros], -1), np.stack([zeros, zeros, ones], -1)],
+        [
+            np.stack([c, -s, zeros], -1),
+            np.stack([s, c, zeros], -1),
+            np.stack([zeros, zeros, ones], -1),
+        ],
         -2,
     )
 
@@ -105,7 +109,11 @@ def box_to_world(points_box_frame: np.ndarray, boxes: np.ndarray) -> np.ndarray:
     s = np.sin(boxes[..., 6])[..., None]
     px, py = points[..., 0], points[..., 1]
     world = np.stack(
-        [c * px - s * py + boxes[..., 0:1], s * px + c * py + boxes[..., 1:2], points[..., 2] + boxes[..., 2:3]],
+        [
+            c * px - s * py + boxes[..., 0:1],
+            s * px + c * py + boxes[..., 1:2],
+            points[..., 2] + boxes[..., 2:3],
+        ],
         axis=-1,
     )
     if points.shape[-1] > 3:
@@ -156,7 +164,12 @@ def offset_between(ref_boxes: np.ndarray, target_boxes: np.ndarray) -> np.ndarra
     c, s = np.cos(ref[..., 6]), np.sin(ref[..., 6])
     dx, dy = tgt[..., 0] - ref[..., 0], tgt[..., 1] - ref[..., 1]
     return np.stack(
-        [c * dx + s * dy, -s * dx + c * dy, tgt[..., 2] - ref[..., 2], wrap_yaw(tgt[..., 6] - ref[..., 6])],
+        [
+            c * dx + s * dy,
+            -s * dx + c * dy,
+            tgt[..., 2] - ref[..., 2],
+            wrap_yaw(tgt[..., 6] - ref[..., 6]),
+        ],
         axis=-1,
     )
 
@@ -172,129 +185,270 @@ def boxes_in_frame(boxes: np.ndarray, frame_boxes: np.ndarray) -> np.ndarray:
 
 
 def center_distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Euclidean distance in metres between box centres, ``(..., 7)`` x ``(..., 7)`` -> ``(...)``."""
+    """Distance in metres between box centres, ``(..., 7)`` x ``(..., 7)`` -> ``(...)``."""
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     return np.linalg.norm(a[..., :3] - b[..., :3], axis=-1)
 
 
 # --------------------------------------------------------------------------- oriented IoU
+#
+# The BEV intersection area comes from Green's theorem: the area of the intersection polygon is
+# the boundary integral (1/2) * sum(p0 x p1) over its edges, and that boundary is made of the
+# parts of A's edges inside B plus the parts of B's edges inside A. The part of an edge
+# p + t d, t in [0, 1], inside a box is one interval [t0, t1] found by clipping against the box's
+# axis-aligned half-planes in that box's own frame (Liang-Barsky), and its term is
+# (1/2) * (t1 - t0) * (p x d) about the clipping box's centre. Each B edge term about B's centre
+# is (t1 - t0) * l_B * w_B / 4. No vertex list, no sorting: a fixed ~100 flops per pair.
+#
+# Degenerate cases (shared or collinear edges, identical boxes) follow one rule: an edge of A
+# that lies on B's boundary counts when both run the same way round (their interiors are on the
+# same side), an edge of B on A's boundary never counts. Relative yaws within 1e-8 rad of a
+# multiple of pi/2 are snapped to it, so parallel edges are exactly parallel; "on the boundary"
+# means within 1e-9 of the larger box dimension. The result agrees with Shapely to ~1e-13; the
+# worst case, relative yaws just outside the snapping band (nearly parallel edges whose crossing
+# is ill-conditioned), is ~1e-8 x size^2 in area (measured: IoU within 5e-8 of Shapely).
+
+# Corner signs along (l, w), CCW seen from above starting front-left, and the edge vectors.
+_CU = np.array([0.5, -0.5, -0.5, 0.5])
+_CV = np.array([0.5, 0.5, -0.5, -0.5])
+_EU = np.roll(_CU, -1) - _CU
+_EV = np.roll(_CV, -1) - _CV
+_SNAP = 1e-8
+_TOL = 1e-9
 
 
 def _bev_corners(boxes: np.ndarray) -> np.ndarray:
     """Counter-clockwise BEV corners ``(..., 4, 2)``."""
     c, s = np.cos(boxes[..., 6]), np.sin(boxes[..., 6])
-    hl, hw = boxes[..., 3] * 0.5, boxes[..., 4] * 0.5
-    lx = np.stack([hl, -hl, -hl, hl], -1)
-    ly = np.stack([hw, hw, -hw, -hw], -1)
+    lx = boxes[..., 3, None] * _CU
+    ly = boxes[..., 4, None] * _CV
     x = boxes[..., 0, None] + c[..., None] * lx - s[..., None] * ly
     y = boxes[..., 1, None] + s[..., None] * lx + c[..., None] * ly
     return np.stack([x, y], -1)
 
 
-def _inside(poly: np.ndarray, pts: np.ndarray, tol: np.ndarray) -> np.ndarray:
-    """Points ``(B, P, 2)`` inside CCW convex quads ``(B, 4, 2)`` (boundary included) -> ``(B, P)``."""
-    edge = np.roll(poly, -1, axis=1) - poly  # (B, 4, 2)
-    rel = pts[:, None, :, :] - poly[:, :, None, :]  # (B, 4, P, 2)
-    cross = edge[:, :, None, 0] * rel[..., 1] - edge[:, :, None, 1] * rel[..., 0]
-    return np.all(cross >= -tol[:, None, None], axis=1)
+def _snap_rotation(c: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Snap (cos, sin) within ``_SNAP`` of an axis-aligned rotation onto it exactly."""
+    small_s = np.abs(s) < _SNAP
+    small_c = np.abs(c) < _SNAP
+    c2 = np.where(small_s, np.sign(c), np.where(small_c, 0.0, c))
+    s2 = np.where(small_c, np.sign(s), np.where(small_s, 0.0, s))
+    return c2, s2
 
 
-def _intersection_area_bev(ca: np.ndarray, cb: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Exact area of the intersection of CCW convex quads ``(B, 4, 2)`` and ``(B, 4, 2)``.
+def _edges_in_frame(
+    length: np.ndarray,
+    width: np.ndarray,
+    cx: np.ndarray,
+    cy: np.ndarray,
+    c: np.ndarray,
+    s: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Corners ``(px, py)`` and edge vectors ``(dx, dy)``, each ``(4, B)``, of BEV rectangles
+    ``length x width`` ``(B,)`` in a reference box's frame, where their centres sit at
+    ``(cx, cy)`` ``(B,)`` and ``c, s`` ``(B,)`` are cos, sin of ``yaw_other - yaw_ref``.
 
-    The intersection polygon's vertices are the corners of each quad inside the other plus the
-    edge-edge crossings; they are ordered by angle about their mean and summed by the shoelace
-    formula. ``scale`` ``(B,)`` sets the tolerances.
+    The layout is ``(4, B)`` (edge, pair) so every numpy loop runs over the long axis.
     """
-    tol = 1e-9 * scale * scale
-    in_a = _inside(ca, cb, tol)  # corners of b inside a
-    in_b = _inside(cb, ca, tol)
-    p = ca[:, :, None, :]
-    r = (np.roll(ca, -1, axis=1) - ca)[:, :, None, :]
-    q = cb[:, None, :, :]
-    s = (np.roll(cb, -1, axis=1) - cb)[:, None, :, :]
-    rxs = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]  # (B, 4, 4)
-    qp = q - p
-    qpxs = qp[..., 0] * s[..., 1] - qp[..., 1] * s[..., 0]
-    qpxr = qp[..., 0] * r[..., 1] - qp[..., 1] * r[..., 0]
-    parallel = np.abs(rxs) <= 1e-12 * scale[:, None, None] ** 2
-    denom = np.where(parallel, 1.0, rxs)
-    t = qpxs / denom
-    u = qpxr / denom
-    ok = ~parallel & (t >= -1e-12) & (t <= 1 + 1e-12) & (u >= -1e-12) & (u <= 1 + 1e-12)
-    cross_pts = (p + t[..., None] * r).reshape(len(ca), 16, 2)
-    pts = np.concatenate([ca, cb, cross_pts], axis=1)  # (B, 24, 2)
-    valid = np.concatenate([in_b, in_a, ok.reshape(len(ca), 16)], axis=1)
-    count = valid.sum(axis=1)
-    centre = (pts * valid[..., None]).sum(axis=1) / np.maximum(count, 1)[:, None]
-    rel = pts - centre[:, None, :]
-    ang = np.arctan2(rel[..., 1], rel[..., 0])
-    ang = np.where(valid, ang, np.inf)
-    order = np.argsort(ang, axis=1)
-    rel = np.take_along_axis(rel, order[..., None], axis=1)
-    valid_sorted = np.take_along_axis(valid, order, axis=1)
-    # Invalid slots repeat the first vertex: they add zero-area edges and close the polygon.
-    rel = np.where(valid_sorted[..., None], rel, rel[:, :1, :])
-    nxt = np.roll(rel, -1, axis=1)
-    area = 0.5 * np.abs((rel[..., 0] * nxt[..., 1] - rel[..., 1] * nxt[..., 0]).sum(axis=1))
-    return np.where(count >= 3, area, 0.0)
+    lc = 0.5 * length * c
+    ls = 0.5 * length * s
+    wc = 0.5 * width * c
+    ws = 0.5 * width * s
+    n = len(length)
+    px, py, dx, dy = np.empty((4, 4, n))
+    # corners CCW from front-left: (+l, +w), (-l, +w), (-l, -w), (+l, -w) halves, turned by (c, s)
+    front, back = cx + lc, cx - lc
+    np.subtract(front, ws, out=px[0])
+    np.subtract(back, ws, out=px[1])
+    np.add(back, ws, out=px[2])
+    np.add(front, ws, out=px[3])
+    front, back = cy + ls, cy - ls
+    np.add(front, wc, out=py[0])
+    np.add(back, wc, out=py[1])
+    np.subtract(back, wc, out=py[2])
+    np.subtract(front, wc, out=py[3])
+    # edge k runs from corner k to corner k + 1
+    np.multiply(lc, -2.0, out=dx[0])
+    np.multiply(ws, 2.0, out=dx[1])
+    np.negative(dx[0], out=dx[2])
+    np.negative(dx[1], out=dx[3])
+    np.multiply(ls, -2.0, out=dy[0])
+    np.multiply(wc, -2.0, out=dy[1])
+    np.negative(dy[0], out=dy[2])
+    np.negative(dy[1], out=dy[3])
+    return px, py, dx, dy
 
 
-def _clip_convex(subject: list[tuple[float, float]], clip: list[tuple[float, float]]) -> list:
-    """Sutherland-Hodgman clipping of a convex polygon by a CCW convex polygon (scalar path)."""
-    out = subject
-    for i in range(len(clip)):
-        if not out:
-            break
-        (x1, y1), (x2, y2) = clip[i], clip[(i + 1) % len(clip)]
-        ex, ey = x2 - x1, y2 - y1
-        inp, out = out, []
-        prev = inp[-1]
-        prev_side = ex * (prev[1] - y1) - ey * (prev[0] - x1)
-        for cur in inp:
-            cur_side = ex * (cur[1] - y1) - ey * (cur[0] - x1)
-            if cur_side >= 0:
-                if prev_side < 0:
-                    t = prev_side / (prev_side - cur_side)
-                    out.append((prev[0] + t * (cur[0] - prev[0]), prev[1] + t * (cur[1] - prev[1])))
-                out.append(cur)
-            elif prev_side >= 0:
-                t = prev_side / (prev_side - cur_side)
-                out.append((prev[0] + t * (cur[0] - prev[0]), prev[1] + t * (cur[1] - prev[1])))
-            prev, prev_side = cur, cur_side
-    return out
+def _clip_fraction(
+    px: np.ndarray,
+    py: np.ndarray,
+    dx: np.ndarray,
+    dy: np.ndarray,
+    hx: np.ndarray,
+    hy: np.ndarray,
+    tol: np.ndarray,
+    closed: bool,
+) -> np.ndarray:
+    """Fraction ``(4, B)`` of each edge ``p + t d`` (t in [0, 1]) inside ``|x| <= hx, |y| <= hy``
+    (``hx, hy, tol`` ``(B,)``).
+
+    An edge parallel to an axis (``d`` component exactly 0) lying on the box boundary (within
+    ``tol``) counts when ``closed`` and it runs the box's CCW way, never when not ``closed``.
+    """
+    lo = np.zeros(px.shape)
+    hi = np.ones(px.shape)
+    # x: the +hx side runs +y (CCW); y: the +hy side runs -x.
+    for p, d, h, other, sign in ((px, dx, hx, dy, 1.0), (py, dy, hy, dx, -1.0)):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = np.divide(1.0, d)
+            ta = np.negative(h) - p
+            ta *= inv
+            tb = h - p
+            tb *= inv
+        tlo = np.minimum(ta, tb)
+        thi = np.maximum(ta, tb, out=ta)
+        par = d == 0.0
+        if par.any():
+            idx = np.nonzero(par)
+            pp, oo = p[idx], other[idx]
+            hh, tt = h[idx[1]], tol[idx[1]]
+            keep = np.abs(pp) < hh - tt
+            if closed:
+                keep |= (np.abs(pp - hh) <= tt) & (sign * oo > 0)
+                keep |= (np.abs(pp + hh) <= tt) & (sign * oo < 0)
+            tlo[idx] = np.where(keep, -np.inf, np.inf)
+            thi[idx] = np.where(keep, np.inf, -np.inf)
+        np.maximum(lo, tlo, out=lo)
+        np.minimum(hi, thi, out=hi)
+    hi -= lo
+    return np.maximum(hi, 0.0, out=hi)
 
 
-def _quad(box: np.ndarray) -> list[tuple[float, float]]:
-    x, y, _, l, w, _, yaw = (float(v) for v in box)
-    c, s = math.cos(yaw), math.sin(yaw)
-    hl, hw = 0.5 * l, 0.5 * w
-    return [(x + c * a - s * b, y + s * a + c * b) for a, b in ((hl, hw), (-hl, hw), (-hl, -hw), (hl, -hw))]
+def _intersection_area_bev(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Exact BEV intersection area of boxes ``(B, 7)`` and ``(B, 7)`` -> ``(B,)`` m^2."""
+    at = np.ascontiguousarray(a.T)  # (7, B): contiguous columns
+    bt = np.ascontiguousarray(b.T)
+    dyaw = at[6] - bt[6]
+    c, s = _snap_rotation(np.cos(dyaw), np.sin(dyaw))
+    tol = _TOL * np.maximum(np.maximum(at[3], at[4]), np.maximum(bt[3], bt[4]))
+    # A's centre in B's frame; B's centre in A's frame through the exact inverse of that
+    # (snapped) transform, so both views see one and the same configuration.
+    cb, sb = np.cos(bt[6]), np.sin(bt[6])
+    ddx = at[0] - bt[0]
+    ddy = at[1] - bt[1]
+    cx = cb * ddx + sb * ddy
+    cy = cb * ddy - sb * ddx
+    px, py, dx, dy = _edges_in_frame(at[3], at[4], cx, cy, c, s)
+    frac_a = _clip_fraction(px, py, dx, dy, 0.5 * bt[3], 0.5 * bt[4], tol, True)
+    px *= dy
+    py *= dx
+    px -= py
+    term_a = 0.5 * np.einsum("ij,ij->j", frac_a, px)
+    qx, qy, ex, ey = _edges_in_frame(bt[3], bt[4], -c * cx - s * cy, s * cx - c * cy, c, -s)
+    frac_b = _clip_fraction(qx, qy, ex, ey, 0.5 * at[3], 0.5 * at[4], tol, False)
+    return term_a + 0.25 * bt[3] * bt[4] * frac_b.sum(0)
+
+
+def _edges_term_1(
+    ref: list[float],
+    other: list[float],
+    cx: float,
+    cy: float,
+    c: float,
+    s: float,
+    tol: float,
+    closed: bool,
+) -> tuple[float, float]:
+    """Scalar twin of :func:`_edges_in_frame` + :func:`_clip_fraction` for one pair: sums over
+    ``other``'s edges (centre at ``(cx, cy)`` in ``ref``'s frame, relative rotation ``c, s``) of
+    the fraction inside ``ref`` and of fraction * (p x d)."""
+    hx, hy = 0.5 * ref[3], 0.5 * ref[4]
+    hl, hw = 0.5 * other[3], 0.5 * other[4]
+    # Corners CCW from front-left and the edge vectors, in ref's frame.
+    lc, ls, wc, ws = hl * c, hl * s, hw * c, hw * s
+    corners = (
+        (cx + lc - ws, cy + ls + wc),
+        (cx - lc - ws, cy - ls + wc),
+        (cx - lc + ws, cy - ls - wc),
+        (cx + lc + ws, cy + ls - wc),
+    )
+    edges = ((-2 * lc, -2 * ls), (2 * ws, -2 * wc), (2 * lc, 2 * ls), (-2 * ws, 2 * wc))
+    frac_sum = 0.0
+    cross_sum = 0.0
+    for (px, py), (dx, dy) in zip(corners, edges, strict=True):
+        lo, hi = 0.0, 1.0
+        if dx != 0.0:
+            ta, tb = (-hx - px) / dx, (hx - px) / dx
+            if ta > tb:
+                ta, tb = tb, ta
+            if ta > lo:
+                lo = ta
+            if tb < hi:
+                hi = tb
+        elif not (
+            abs(px) < hx - tol
+            or (closed and ((abs(px - hx) <= tol and dy > 0) or (abs(px + hx) <= tol and dy < 0)))
+        ):
+            continue
+        if dy != 0.0:
+            ta, tb = (-hy - py) / dy, (hy - py) / dy
+            if ta > tb:
+                ta, tb = tb, ta
+            if ta > lo:
+                lo = ta
+            if tb < hi:
+                hi = tb
+        elif not (
+            abs(py) < hy - tol
+            or (closed and ((abs(py - hy) <= tol and dx < 0) or (abs(py + hy) <= tol and dx > 0)))
+        ):
+            continue
+        if hi > lo:
+            f = hi - lo
+            frac_sum += f
+            cross_sum += f * (px * dy - py * dx)
+    return frac_sum, cross_sum
 
 
 def _iou_single(a: np.ndarray, b: np.ndarray, vertical: bool) -> float:
     """Lean path for one pair: plain Python floats, no array temporaries."""
-    poly = _clip_convex(_quad(a), _quad(b))
-    inter = 0.0
-    for i in range(len(poly)):
-        x1, y1 = poly[i]
-        x2, y2 = poly[(i + 1) % len(poly)]
-        inter += x1 * y2 - x2 * y1
-    inter = abs(inter) * 0.5
-    area_a = float(a[3]) * float(a[4])
-    area_b = float(b[3]) * float(b[4])
+    pa, pb = a.tolist(), b.tolist()
+    if not math.isfinite(sum(pa) + sum(pb)):
+        return math.nan
+    area_a = pa[3] * pa[4]
+    area_b = pb[3] * pb[4]
     if vertical:
-        za, ha, zb, hb = float(a[2]), float(a[5]), float(b[2]), float(b[5])
+        za, ha, zb, hb = pa[2], pa[5], pb[2], pb[5]
         dz = min(za + 0.5 * ha, zb + 0.5 * hb) - max(za - 0.5 * ha, zb - 0.5 * hb)
-        inter *= max(dz, 0.0)
         area_a *= ha
         area_b *= hb
+    else:
+        dz = 1.0
+    # Bounding circles apart (or no vertical overlap): the IoU is 0.
+    reach = 0.5 * (math.hypot(pa[3], pa[4]) + math.hypot(pb[3], pb[4]))
+    if dz <= 0.0 or math.hypot(pa[0] - pb[0], pa[1] - pb[1]) > reach:
+        return 0.0
+    dyaw = pa[6] - pb[6]
+    c, s = math.cos(dyaw), math.sin(dyaw)
+    if abs(s) < _SNAP:
+        c, s = math.copysign(1.0, c), 0.0
+    elif abs(c) < _SNAP:
+        c, s = 0.0, math.copysign(1.0, s)
+    tol = _TOL * max(pa[3], pa[4], pb[3], pb[4])
+    cb, sb = math.cos(pb[6]), math.sin(pb[6])
+    ddx, ddy = pa[0] - pb[0], pa[1] - pb[1]
+    cx, cy = cb * ddx + sb * ddy, cb * ddy - sb * ddx
+    _, cross_a = _edges_term_1(pb, pa, cx, cy, c, s, tol, True)
+    frac_b, _ = _edges_term_1(pa, pb, -c * cx - s * cy, s * cx - c * cy, c, -s, tol, False)
+    inter = (0.5 * cross_a + 0.25 * pb[3] * pb[4] * frac_b) * dz
     union = area_a + area_b - inter
+    if union != union:
+        return math.nan
     return min(max(inter / union, 0.0), 1.0) if union > 0 else 0.0
 
 
-_CHUNK = 1 << 16
+_CHUNK = 1 << 13  # (4, 8192) float64 temporaries stay in L2: ~2x faster than 1 << 14
 
 
 def _iou(a: np.ndarray, b: np.ndarray, vertical: bool) -> np.ndarray:
@@ -311,18 +465,21 @@ def _iou(a: np.ndarray, b: np.ndarray, vertical: bool) -> np.ndarray:
     out = np.empty(len(a))
     for start in range(0, len(a), _CHUNK):
         sa, sb = a[start : start + _CHUNK], b[start : start + _CHUNK]
-        scale = np.maximum(np.abs(sa[:, 3:5]).max(1), np.abs(sb[:, 3:5]).max(1)) + 1e-12
-        inter = _intersection_area_bev(_bev_corners(sa), _bev_corners(sb), scale)
+        inter = _intersection_area_bev(sa, sb)
         area_a = sa[:, 3] * sa[:, 4]
         area_b = sb[:, 3] * sb[:, 4]
         if vertical:
             top = np.minimum(sa[:, 2] + 0.5 * sa[:, 5], sb[:, 2] + 0.5 * sb[:, 5])
             bottom = np.maximum(sa[:, 2] - 0.5 * sa[:, 5], sb[:, 2] - 0.5 * sb[:, 5])
-            inter = inter * np.clip(top - bottom, 0.0, None)
+            inter = inter * np.maximum(top - bottom, 0.0)
             area_a = area_a * sa[:, 5]
             area_b = area_b * sb[:, 5]
         union = area_a + area_b - inter
-        out[start : start + _CHUNK] = np.where(union > 0, inter / np.where(union > 0, union, 1.0), 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iou = inter / union
+        out[start : start + _CHUNK] = np.where(
+            union > 0, iou, np.where(np.isnan(union), np.nan, 0.0)
+        )
     return np.clip(out, 0.0, 1.0).reshape(shape)
 
 
@@ -330,6 +487,9 @@ def iou_3d(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Exact oriented 3D IoU of boxes ``(..., 7)`` and ``(..., 7)`` (broadcast) -> ``(...)``.
 
     BEV intersection of the rotated rectangles times the overlap of ``[z - h/2, z + h/2]``.
+    Exact up to rounding (agrees with Shapely to ~1e-13); boxes that only touch give 0, identical
+    boxes 1; a NaN in a box gives NaN. Two 1-D boxes take a lean pure-Python path (~20 us);
+    batches run vectorised (~1M pairs/s on 2 cores).
     """
     return _iou(a, b, vertical=True)
 
@@ -358,7 +518,11 @@ def box_to_world_torch(points_box_frame: torch.Tensor, boxes: torch.Tensor) -> t
     s = torch.sin(boxes[..., 6])[..., None]
     px, py = points_box_frame[..., 0], points_box_frame[..., 1]
     return torch.stack(
-        [c * px - s * py + boxes[..., 0:1], s * px + c * py + boxes[..., 1:2], points_box_frame[..., 2] + boxes[..., 2:3]],
+        [
+            c * px - s * py + boxes[..., 0:1],
+            s * px + c * py + boxes[..., 1:2],
+            points_box_frame[..., 2] + boxes[..., 2:3],
+        ],
         dim=-1,
     )
 

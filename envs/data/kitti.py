@@ -1,0 +1,706 @@
+"""The KITTI tracking layout: calibration, labels, scans, and the tracklet loader.
+
+Layout under ``root`` (the KITTI tracking *training* folder, or a synthetic world)::
+
+    label_02/SSSS.txt        one labelled object per line (17 fields, see :class:`LabelRow`)
+    calib/SSSS.txt           P0..P3, R0_rect, Tr_velo_to_cam (object-style or raw tracking keys)
+    velodyne/SSSS/FFFFFF.bin float32 (x, y, z, intensity) per point, LiDAR frame
+
+Frames. Labels live in the rectified camera-0 frame (x right, y down, z forward; ``(x, y, z)`` is
+the *bottom* centre, ``rotation_y`` is about the camera's y axis). A LiDAR point ``p`` maps to the
+rectified camera frame by ``R0_rect @ (Tr_velo_to_cam[:, :3] @ p + Tr_velo_to_cam[:, 3])``; we go
+through both matrices (Open3DSOT drops ``R0_rect``; we don't). A converted box has
+``(x, y, z)`` = the LiDAR image of the bottom centre lifted by ``h / 2`` along LiDAR +z, size
+``(l, w, h)``, and ``yaw`` = the angle about LiDAR +z of the LiDAR image of the camera heading
+vector ``(cos ry, 0, -sin ry)``, wrapped to ``[-pi, pi)``.
+
+Errors. Every file error names the file (and the line, for labels). Non-finite scan points are
+dropped and counted: :func:`read_scan` emits a :class:`NonFinitePointsWarning` naming the file
+and the count (``return_dropped=True`` also returns the count).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from envs.data.tracklet import ScanCache, Tracklet
+from envs.geometry import wrap_yaw
+
+__all__ = [
+    "CATEGORIES",
+    "SPLITS",
+    "Calibration",
+    "KittiTracking",
+    "LabelRow",
+    "MissingScanWarning",
+    "NonFinitePointsWarning",
+    "SceneScans",
+    "camera_to_lidar_boxes",
+    "label_path",
+    "lidar_to_camera_boxes",
+    "read_calibration",
+    "read_labels",
+    "read_scan",
+    "scan_path",
+    "write_calibration",
+    "write_labels",
+    "write_scan",
+]
+
+# Scene numbers of each split (the standard KITTI tracking split of P2B / BAT / Open3DSOT).
+SPLITS: dict[str, range | None] = {
+    "train": range(0, 17),
+    "val": range(17, 19),
+    "test": range(19, 21),
+    "all": None,
+}
+
+# Category names a loader accepts: KITTI spelling plus the nuScenes-style extras.
+CATEGORIES: tuple[str, ...] = (
+    "Car",
+    "Van",
+    "Truck",
+    "Pedestrian",
+    "Person_sitting",
+    "Cyclist",
+    "Tram",
+    "Misc",
+    "Bus",
+    "Bicycle",
+    "Motorcycle",
+    "Trailer",
+)
+
+
+class NonFinitePointsWarning(RuntimeWarning):
+    """A scan held NaN/inf points; they were dropped (the message names the file and count)."""
+
+
+# --------------------------------------------------------------------------- calibration
+
+# Key aliases: object-benchmark style (written) first, then the raw tracking names.
+_KEY_ALIASES: dict[str, tuple[str, ...]] = {
+    "P0": ("P0",),
+    "P1": ("P1",),
+    "P2": ("P2",),
+    "P3": ("P3",),
+    "R0_rect": ("R0_rect", "R_rect"),
+    "Tr_velo_to_cam": ("Tr_velo_to_cam", "Tr_velo_cam"),
+    "Tr_imu_to_velo": ("Tr_imu_to_velo", "Tr_imu_velo"),
+}
+
+
+def _default_p() -> np.ndarray:
+    return np.hstack([np.eye(3), np.zeros((3, 1))])
+
+
+@dataclass
+class Calibration:
+    """One scene's calibration.
+
+    Attributes:
+        r0_rect: ``(3, 3)`` rectifying rotation of camera 0.
+        tr_velo_to_cam: ``(3, 4)`` rigid transform LiDAR -> (unrectified) camera 0, metres.
+        p0, p1, p2, p3: ``(3, 4)`` camera projection matrices (kept for writing; unused here).
+        tr_imu_to_velo: ``(3, 4)`` IMU -> LiDAR (kept for writing; unused here).
+    """
+
+    r0_rect: np.ndarray = field(default_factory=lambda: np.eye(3))
+    tr_velo_to_cam: np.ndarray = field(default_factory=_default_p)
+    p0: np.ndarray = field(default_factory=_default_p)
+    p1: np.ndarray = field(default_factory=_default_p)
+    p2: np.ndarray = field(default_factory=_default_p)
+    p3: np.ndarray = field(default_factory=_default_p)
+    tr_imu_to_velo: np.ndarray = field(default_factory=_default_p)
+
+    def __post_init__(self) -> None:
+        self.r0_rect = np.asarray(self.r0_rect, dtype=np.float64).reshape(3, 3)
+        for name in ("tr_velo_to_cam", "p0", "p1", "p2", "p3", "tr_imu_to_velo"):
+            setattr(self, name, np.asarray(getattr(self, name), dtype=np.float64).reshape(3, 4))
+
+    def velo_to_rect(self) -> np.ndarray:
+        """``(4, 4)`` LiDAR -> rectified camera transform ``R0_rect @ Tr_velo_to_cam``."""
+        r0 = np.eye(4)
+        r0[:3, :3] = self.r0_rect
+        tr = np.eye(4)
+        tr[:3, :] = self.tr_velo_to_cam
+        return r0 @ tr
+
+    def rect_to_velo(self) -> np.ndarray:
+        """``(4, 4)`` inverse of :meth:`velo_to_rect`."""
+        return np.linalg.inv(self.velo_to_rect())
+
+
+def _parse_calibration_line(line: str) -> tuple[str, list[str]] | None:
+    line = line.strip()
+    if not line:
+        return None
+    if ":" in line.split(maxsplit=1)[0]:
+        key, _, rest = line.partition(":")
+    else:
+        key, _, rest = line.partition(" ")
+    return key.strip(), rest.split()
+
+
+def read_calibration(path: str | Path) -> Calibration:
+    """Read a calibration file in either key style (``R0_rect:`` / ``Tr_velo_to_cam:`` or the
+    raw tracking ``R_rect`` / ``Tr_velo_cam`` without colon).
+
+    ``R0_rect`` and ``Tr_velo_to_cam`` are required; a missing one raises a ``KeyError`` naming
+    the file and the key. Missing projection matrices default to ``[I | 0]``.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise FileNotFoundError(f"cannot read calibration file {path}: {exc}") from exc
+    raw: dict[str, list[str]] = {}
+    for lineno, line in enumerate(text.splitlines(), 1):
+        parsed = _parse_calibration_line(line)
+        if parsed is not None:
+            raw[parsed[0]] = parsed[1] + [f"@{lineno}"]
+    values: dict[str, np.ndarray] = {}
+    for canonical, aliases in _KEY_ALIASES.items():
+        key = next((k for k in aliases if k in raw), None)
+        if key is None:
+            if canonical in ("R0_rect", "Tr_velo_to_cam"):
+                raise KeyError(
+                    f"calibration file {path} lacks key {canonical!r} "
+                    f"(also accepted: {', '.join(aliases[1:])})"
+                )
+            continue
+        *numbers, where = raw[key]
+        expected = 9 if canonical == "R0_rect" else 12
+        try:
+            arr = np.array([float(v) for v in numbers], dtype=np.float64)
+        except ValueError as exc:
+            raise ValueError(
+                f"calibration file {path}, line {where[1:]}: key {key!r}: {exc}"
+            ) from exc
+        if arr.size != expected or not np.all(np.isfinite(arr)):
+            raise ValueError(
+                f"calibration file {path}, line {where[1:]}: key {key!r} needs {expected} "
+                f"finite numbers, "
+                f"got {arr.size}"
+            )
+        values[canonical] = arr
+    return Calibration(
+        r0_rect=values["R0_rect"].reshape(3, 3),
+        tr_velo_to_cam=values["Tr_velo_to_cam"].reshape(3, 4),
+        p0=values.get("P0", _default_p()),
+        p1=values.get("P1", _default_p()),
+        p2=values.get("P2", _default_p()),
+        p3=values.get("P3", _default_p()),
+        tr_imu_to_velo=values.get("Tr_imu_to_velo", _default_p()),
+    )
+
+
+def write_calibration(path: str | Path, calib: Calibration) -> None:
+    """Write ``calib`` with the object-style keys (``P0:`` … ``R0_rect:``, ``Tr_velo_to_cam:``)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+    def fmt(arr: np.ndarray) -> str:
+        return " ".join(f"{v:.12e}" for v in np.asarray(arr, dtype=np.float64).ravel())
+
+    lines = [
+        f"P0: {fmt(calib.p0)}",
+        f"P1: {fmt(calib.p1)}",
+        f"P2: {fmt(calib.p2)}",
+        f"P3: {fmt(calib.p3)}",
+        f"R0_rect: {fmt(calib.r0_rect)}",
+        f"Tr_velo_to_cam: {fmt(calib.tr_velo_to_cam)}",
+        f"Tr_imu_to_velo: {fmt(calib.tr_imu_to_velo)}",
+    ]
+    path.write_text("\n".join(lines) + "\n")
+
+
+# --------------------------------------------------------------------------- box conversion
+
+
+def camera_to_lidar_boxes(hwl_xyz_ry: np.ndarray, calib: Calibration) -> np.ndarray:
+    """KITTI label boxes -> LiDAR boxes.
+
+    Args:
+        hwl_xyz_ry: ``(..., 7)`` ``[h, w, l, x, y, z, rotation_y]`` in the rectified camera frame,
+            metres / radians, ``(x, y, z)`` the bottom centre.
+        calib: the scene's calibration.
+
+    Returns:
+        ``(..., 7)`` float64 ``(x, y, z, l, w, h, yaw)`` in the LiDAR frame, centre = bottom
+        centre lifted by ``h / 2`` along LiDAR +z, yaw wrapped to ``[-pi, pi)``.
+    """
+    cam = np.asarray(hwl_xyz_ry, dtype=np.float64)
+    if cam.shape[-1] != 7:
+        raise ValueError(
+            f"camera boxes must have shape (..., 7) [h, w, l, x, y, z, ry]; got {cam.shape}"
+        )
+    inv = calib.rect_to_velo()
+    lin, trans = inv[:3, :3], inv[:3, 3]
+    h, w, length = cam[..., 0], cam[..., 1], cam[..., 2]
+    bottom = cam[..., 3:6] @ lin.T + trans
+    ry = cam[..., 6]
+    heading_cam = np.stack([np.cos(ry), np.zeros_like(ry), -np.sin(ry)], axis=-1)
+    heading = heading_cam @ lin.T
+    yaw = wrap_yaw(np.arctan2(heading[..., 1], heading[..., 0]))
+    out = np.empty(cam.shape, dtype=np.float64)
+    out[..., 0:2] = bottom[..., 0:2]
+    out[..., 2] = bottom[..., 2] + 0.5 * h
+    out[..., 3] = length
+    out[..., 4] = w
+    out[..., 5] = h
+    out[..., 6] = yaw
+    return out
+
+
+def lidar_to_camera_boxes(boxes: np.ndarray, calib: Calibration) -> np.ndarray:
+    """Exact inverse of :func:`camera_to_lidar_boxes`.
+
+    Args:
+        boxes: ``(..., 7)`` LiDAR boxes ``(x, y, z, l, w, h, yaw)``.
+        calib: the scene's calibration.
+
+    Returns:
+        ``(..., 7)`` float64 ``[h, w, l, x, y, z, rotation_y]`` (bottom centre, rectified camera
+        frame), ``rotation_y`` wrapped to ``[-pi, pi)``. The heading is recovered exactly: among
+        the LiDAR directions whose horizontal part points along ``yaw``, the one that maps into the
+        camera's x-z plane is taken, and ``rotation_y`` is read from its camera image.
+    """
+    box = np.asarray(boxes, dtype=np.float64)
+    if box.shape[-1] != 7:
+        raise ValueError(f"LiDAR boxes must have shape (..., 7); got {box.shape}")
+    fwd = calib.velo_to_rect()
+    lin, trans = fwd[:3, :3], fwd[:3, 3]
+    h = box[..., 5]
+    bottom = box[..., 0:3].copy()
+    bottom[..., 2] -= 0.5 * h
+    bottom_cam = bottom @ lin.T + trans
+    c, s = np.cos(box[..., 6]), np.sin(box[..., 6])
+    # d = (c, s, 0) + beta * (0, 0, 1) with (lin @ d)_y == 0  (camera y: the axis ry turns about).
+    horiz_y = lin[1, 0] * c + lin[1, 1] * s
+    beta = -horiz_y / lin[1, 2]
+    dx = lin[0, 0] * c + lin[0, 1] * s + lin[0, 2] * beta
+    dz = lin[2, 0] * c + lin[2, 1] * s + lin[2, 2] * beta
+    ry = wrap_yaw(np.arctan2(-dz, dx))
+    out = np.empty(box.shape, dtype=np.float64)
+    out[..., 0] = h
+    out[..., 1] = box[..., 4]
+    out[..., 2] = box[..., 3]
+    out[..., 3:6] = bottom_cam
+    out[..., 6] = ry
+    return out
+
+
+# --------------------------------------------------------------------------- labels
+
+
+class LabelRow(NamedTuple):
+    """One row of a KITTI tracking label file (17 fields, in file order)."""
+
+    frame: int
+    track_id: int
+    type: str
+    truncated: float
+    occluded: int
+    alpha: float
+    bbox_left: float
+    bbox_top: float
+    bbox_right: float
+    bbox_bottom: float
+    height: float
+    width: float
+    length: float
+    x: float
+    y: float
+    z: float
+    rotation_y: float
+
+    @property
+    def hwl_xyz_ry(self) -> tuple[float, ...]:
+        """``[h, w, l, x, y, z, ry]`` (the input of :func:`camera_to_lidar_boxes`)."""
+        return (self.height, self.width, self.length, self.x, self.y, self.z, self.rotation_y)
+
+    @classmethod
+    def from_box(
+        cls,
+        frame: int,
+        track_id: int,
+        category: str,
+        hwl_xyz_ry: Sequence[float],
+        *,
+        truncated: float = 0.0,
+        occluded: int = 0,
+        alpha: float | None = None,
+        bbox: Sequence[float] = (-1.0, -1.0, -1.0, -1.0),
+    ) -> LabelRow:
+        """Row from a camera box ``[h, w, l, x, y, z, ry]``; ``alpha`` defaults to the KITTI
+        observation angle ``ry - atan2(x, z)`` wrapped to ``[-pi, pi)``."""
+        h, w, length, x, y, z, ry = (float(v) for v in hwl_xyz_ry)
+        if alpha is None:
+            alpha = float(wrap_yaw(ry - math.atan2(x, z)))
+        left, top, right, bottom = (float(v) for v in bbox)
+        return cls(
+            int(frame),
+            int(track_id),
+            str(category),
+            float(truncated),
+            int(occluded),
+            float(alpha),
+            left,
+            top,
+            right,
+            bottom,
+            h,
+            w,
+            length,
+            x,
+            y,
+            z,
+            ry,
+        )
+
+
+_INT_FIELDS = (0, 1, 4)  # frame, track_id, occluded
+
+
+def _parse_label_line(line: str, path: Path, lineno: int) -> LabelRow:
+    """Strict parse of one row; errors name the file, line and field."""
+    parts = line.split()
+    if len(parts) != 17:
+        raise ValueError(f"label file {path}, line {lineno}: expected 17 fields, got {len(parts)}")
+    values: list = []
+    for i, text in enumerate(parts):
+        if i == 2:
+            values.append(text)
+            continue
+        name = LabelRow._fields[i]
+        try:
+            value = float(text)
+        except ValueError:
+            raise ValueError(
+                f"label file {path}, line {lineno}: field {i + 1} ({name}) "
+                f"is not a number: {text!r}"
+            ) from None
+        if not math.isfinite(value):
+            raise ValueError(f"label file {path}, line {lineno}: field {i + 1} ({name}) is {text}")
+        if i in _INT_FIELDS:
+            if value != int(value):
+                raise ValueError(
+                    f"label file {path}, line {lineno}: field {i + 1} ({name}) "
+                    f"is not an integer: {text!r}"
+                )
+            value = int(value)
+        values.append(value)
+    return LabelRow(*values)
+
+
+class _LabelTable(NamedTuple):
+    """Column view of a label file: ``frame (N,)``, ``track_id (N,)`` int64, ``type`` list of
+    str, ``values (N, 17)`` float64 (columns in :class:`LabelRow` order, ``type`` column NaN)."""
+
+    frame: np.ndarray
+    track_id: np.ndarray
+    type: list[str]
+    values: np.ndarray
+
+
+def _read_label_table(path: Path) -> _LabelTable:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise FileNotFoundError(f"cannot read label file {path}: {exc}") from exc
+    lines = text.splitlines()
+    n_rows = sum(map(bool, map(str.strip, lines)))
+    tokens = text.split()
+    values = None
+    types = tokens[2::17]
+    # Fast path: one flat parse. A row with a wrong field count that another row compensates
+    # would shift a type name into a numeric column (or a number into the type column), which
+    # the checks below catch; anything odd falls back to the strict per-line parse.
+    if len(tokens) == 17 * n_rows and all(t[:1].isalpha() for t in types):
+        tokens[2::17] = ["nan"] * n_rows
+        try:
+            values = np.array(tokens, dtype=np.float64).reshape(n_rows, 17)
+        except ValueError:
+            values = None
+        else:
+            ints = values[:, _INT_FIELDS]
+            numeric = np.delete(values, 2, axis=1)
+            if not (np.isfinite(numeric).all() and np.array_equal(ints, np.round(ints))):
+                values = None
+    if values is None:  # slow path: find the offending line and name it
+        for lineno, line in enumerate(lines, 1):
+            if line.strip():
+                _parse_label_line(line, path, lineno)
+        raise ValueError(f"label file {path}: cannot be parsed")  # pragma: no cover
+    return _LabelTable(values[:, 0].astype(np.int64), values[:, 1].astype(np.int64), types, values)
+
+
+def read_labels(path: str | Path) -> list[LabelRow]:
+    """All rows of a KITTI tracking label file (DontCare included), in file order.
+
+    Raises ``ValueError`` naming the file and line for a row with the wrong number of fields or a
+    field that is not a (finite) number (or not an integer for frame, track id and occluded);
+    ``FileNotFoundError`` naming the file when it is missing.
+    """
+    table = _read_label_table(Path(path))
+    out = []
+    for i, row in enumerate(table.values.tolist()):
+        row[0], row[1], row[2], row[4] = int(row[0]), int(row[1]), table.type[i], int(row[4])
+        out.append(LabelRow(*row))
+    return out
+
+
+def write_labels(path: str | Path, rows: Iterable[Sequence]) -> None:
+    """Write rows of 17 fields (``LabelRow`` or any 17-sequence in :class:`LabelRow` order)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = []
+    for i, row in enumerate(rows):
+        row = tuple(row)
+        if len(row) != 17:
+            raise ValueError(f"label row {i} for {path} has {len(row)} fields, expected 17")
+        r = LabelRow(*row)
+        if not all(math.isfinite(float(v)) for v in (r[0], r[1], r[3], *r[4:])):
+            raise ValueError(f"label row {i} for {path} has a non-finite field: {row}")
+        if not str(r.type) or any(ch.isspace() for ch in str(r.type)):
+            raise ValueError(f"label row {i} for {path}: bad type {r.type!r}")
+        lines.append(
+            f"{int(r.frame)} {int(r.track_id)} {r.type} {float(r.truncated):g} {int(r.occluded)} "
+            + " ".join(repr(float(v)) for v in r[5:])
+        )
+    path.write_text("".join(line + "\n" for line in lines))
+
+
+# --------------------------------------------------------------------------- scans
+
+
+def read_scan(
+    path: str | Path, *, return_dropped: bool = False
+) -> np.ndarray | tuple[np.ndarray, int]:
+    """Read a ``.bin`` scan -> ``(N, 4)`` float32 (x, y, z in metres, intensity).
+
+    Points with any non-finite value are dropped; when there are any, a
+    :class:`NonFinitePointsWarning` names the file and the count. With ``return_dropped=True``
+    returns ``(points, n_dropped)``. A size that is not a multiple of 16 bytes raises
+    ``ValueError`` naming the file; a missing file raises ``FileNotFoundError`` naming it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"scan file {path} not found")
+    size = path.stat().st_size
+    if size % 16:
+        raise ValueError(
+            f"scan file {path}: size {size} bytes is not a multiple of 16 "
+            "(x, y, z, intensity float32)"
+        )
+    points = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    finite = np.isfinite(points).all(axis=1)
+    dropped = int(len(points) - np.count_nonzero(finite))
+    if dropped:
+        points = points[finite]
+        warnings.warn(
+            f"scan file {path}: dropped {dropped} non-finite points",
+            NonFinitePointsWarning,
+            stacklevel=2,
+        )
+    points = points.astype(np.float32, copy=False)
+    return (points, dropped) if return_dropped else points
+
+
+def write_scan(path: str | Path, points: np.ndarray) -> None:
+    """Write ``(N, 4)`` points (x, y, z, intensity) as little-endian float32; ``(N, 3)`` gets zero
+    intensity. Non-finite points raise ``ValueError`` (never written)."""
+    path = Path(path)
+    pts = np.asarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] not in (3, 4):
+        raise ValueError(f"points for {path} must have shape (N, 3) or (N, 4); got {pts.shape}")
+    if not np.isfinite(pts).all():
+        raise ValueError(f"points for {path} contain non-finite values")
+    if pts.shape[1] == 3:
+        pts = np.concatenate([pts, np.zeros((len(pts), 1), np.float32)], axis=1)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.ascontiguousarray(pts, dtype="<f4").tofile(path)
+
+
+# --------------------------------------------------------------------------- the loader
+
+
+def label_path(root: str | Path, scene: str) -> Path:
+    """``root/label_02/SSSS.txt``."""
+    return Path(root) / "label_02" / f"{scene}.txt"
+
+
+def scan_path(root: str | Path, scene: str, frame: int) -> Path:
+    """``root/velodyne/SSSS/FFFFFF.bin``."""
+    return Path(root) / "velodyne" / scene / f"{int(frame):06d}.bin"
+
+
+class MissingScanWarning(RuntimeWarning):
+    """A labelled frame has no scan and ``missing_scans="empty"`` gave an empty one instead."""
+
+
+class SceneScans:
+    """Picklable scan loader of one scene: frame index -> ``(N, 4)`` float32 whole scan.
+
+    ``missing="raise"`` (default): a missing ``.bin`` raises ``FileNotFoundError`` naming the
+    scene, frame and file. ``missing="empty"``: it gives a ``(0, 4)`` scan and a
+    :class:`MissingScanWarning` instead (the original KITTI sequence 0001 lacks frames 177-180).
+    """
+
+    def __init__(self, root: str | Path, scene: str, missing: str = "raise") -> None:
+        if missing not in ("raise", "empty"):
+            raise ValueError(f"missing must be 'raise' or 'empty'; got {missing!r}")
+        self.root = Path(root)
+        self.scene = scene
+        self.missing = missing
+
+    def __call__(self, frame: int) -> np.ndarray:
+        path = scan_path(self.root, self.scene, frame)
+        if not path.is_file():
+            message = f"KITTI scene {self.scene} frame {int(frame)}: scan file {path} is missing"
+            if self.missing == "raise":
+                raise FileNotFoundError(message)
+            warnings.warn(f"{message}; using an empty scan", MissingScanWarning, stacklevel=2)
+            return np.zeros((0, 4), np.float32)
+        return read_scan(path)
+
+    def __repr__(self) -> str:
+        return f"SceneScans({str(self.root)!r}, {self.scene!r}, missing={self.missing!r})"
+
+
+def _check_split(split: str) -> range | None:
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
+    return SPLITS[split]
+
+
+def _check_categories(categories: str | Sequence[str] | None) -> tuple[str, ...] | None:
+    if categories is None:
+        return None
+    if isinstance(categories, str):
+        categories = (categories,)
+    out = tuple(categories)
+    unknown = [c for c in out if c not in CATEGORIES]
+    if unknown:
+        raise ValueError(
+            f"unknown categor{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
+            f"valid: {', '.join(CATEGORIES)}"
+        )
+    return out
+
+
+class KittiTracking:
+    """Tracklets of the KITTI tracking layout (real or synthetic).
+
+    One :class:`~envs.data.tracklet.Tracklet` per ``(scene, track_id)`` of the requested
+    categories (DontCare ignored), holding the track's *labelled* frames in increasing order —
+    a track that leaves and re-enters the view keeps one tracklet with a gap in ``frames``
+    (Open3DSOT does the same; the published frame counts count every labelled row). Boxes are in
+    each frame's LiDAR frame (see the module docstring). Construction reads labels and
+    calibration only; scans are read lazily through one shared :class:`ScanCache` per scene, and
+    a missing scan raises ``FileNotFoundError`` naming scene and frame when that frame is read.
+
+    Args:
+        root: folder with ``label_02/``, ``calib/`` and ``velodyne/``.
+        split: ``"train"`` (scenes 0–16), ``"val"`` (17–18), ``"test"`` (19–20) or ``"all"``.
+            Scenes of the split without a label file are skipped (synthetic worlds may hold a
+            subset).
+        categories: category names (KITTI spelling), a single name, or ``None`` for every
+            category except DontCare.
+        cache_size: scans kept per scene.
+        missing_scans: ``"raise"`` (default) or ``"empty"``: what reading a labelled frame
+            without a scan does (see :class:`SceneScans`).
+
+    Attributes:
+        tracklets: list ordered by scene, then track id.
+        root, split, categories (``None`` = all), scenes (scene names read).
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        split: str = "all",
+        categories: str | Sequence[str] | None = None,
+        *,
+        cache_size: int = 8,
+        missing_scans: str = "raise",
+    ) -> None:
+        if missing_scans not in ("raise", "empty"):
+            raise ValueError(f"missing_scans must be 'raise' or 'empty'; got {missing_scans!r}")
+        self.root = Path(root)
+        self.split = split
+        self.missing_scans = missing_scans
+        scene_range = _check_split(split)
+        self.categories = _check_categories(categories)
+        label_dir = self.root / "label_02"
+        if not label_dir.is_dir():
+            raise FileNotFoundError(f"KITTI root {self.root}: no label_02 folder at {label_dir}")
+        scenes = sorted(p.stem for p in label_dir.glob("*.txt") if p.stem.isdigit())
+        if scene_range is not None:
+            scenes = [s for s in scenes if int(s) in scene_range]
+        self.scenes: list[str] = scenes
+        self.tracklets: list[Tracklet] = []
+        wanted = None if self.categories is None else set(self.categories)
+        for scene in scenes:
+            self.tracklets.extend(self._scene_tracklets(scene, wanted, cache_size))
+
+    def _scene_tracklets(
+        self, scene: str, wanted: set[str] | None, cache_size: int
+    ) -> list[Tracklet]:
+        path = label_path(self.root, scene)
+        table = _read_label_table(path)
+        keep = np.array(
+            [t != "DontCare" and (wanted is None or t in wanted) for t in table.type], dtype=bool
+        )
+        if not keep.any():
+            return []
+        idx = np.flatnonzero(keep)
+        # Sort by (track id, frame); stable so file order breaks ties.
+        idx = idx[np.lexsort((table.frame[idx], table.track_id[idx]))]
+        calib = read_calibration(self.root / "calib" / f"{scene}.txt")
+        cam = table.values[idx][:, [10, 11, 12, 13, 14, 15, 16]]  # h w l x y z ry
+        boxes = camera_to_lidar_boxes(cam, calib)
+        frames = table.frame[idx]
+        tids = table.track_id[idx]
+        same_track = tids[1:] == tids[:-1]
+        dup = same_track & (frames[1:] == frames[:-1])
+        if dup.any():
+            k = int(np.flatnonzero(dup)[0])
+            raise ValueError(
+                f"label file {path}: track {int(tids[k])} labelled twice in frame {int(frames[k])}"
+            )
+        starts = np.concatenate([[0], np.flatnonzero(~same_track) + 1, [len(idx)]])
+        cache = ScanCache(SceneScans(self.root, scene, self.missing_scans), cache_size)
+        out = []
+        for a, b in zip(starts[:-1], starts[1:], strict=True):
+            track_id = int(tids[a])
+            out.append(
+                Tracklet(
+                    tracklet_id=f"{scene}/{track_id}",
+                    scene=scene,
+                    track_id=track_id,
+                    category=table.type[idx[a]],
+                    frames=frames[a:b].copy(),
+                    boxes=boxes[a:b].copy(),
+                    scans=cache,
+                )
+            )
+        return out
+
+    def __len__(self) -> int:
+        return len(self.tracklets)
+
+    def __repr__(self) -> str:
+        return (
+            f"KittiTracking({str(self.root)!r}, split={self.split!r}, "
+            f"categories={self.categories!r}, "
+            f"tracklets={len(self.tracklets)})"
+        )
