@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
 import pytest
 
 # Set before any test module imports envs, so every cache lookup in this run lands here.
-os.environ.setdefault("POINTTRACK_CACHE", tempfile.mkdtemp(prefix="pointtrack-test-cache-"))
+_OWN_CACHE = None
+if "POINTTRACK_CACHE" not in os.environ:
+    _OWN_CACHE = tempfile.mkdtemp(prefix="pointtrack-test-cache-")
+    os.environ["POINTTRACK_CACHE"] = _OWN_CACHE
 
 SHARED_LABELS = Path(__file__).resolve().parents[1].parent / "shared" / "kitti-tracking-labels"
 
@@ -20,3 +24,9 @@ def shared_labels() -> Path:
     if not (SHARED_LABELS / "label_02").is_dir():
         pytest.skip(f"real KITTI labels not found at {SHARED_LABELS}")
     return SHARED_LABELS
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """Remove the private cache (generated worlds are tens of MB) when this run made it."""
+    if _OWN_CACHE is not None:
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)

@@ -1,0 +1,40 @@
+"""The synthetic LiDAR world: procedural street scenes seen by a simulated spinning LiDAR,
+written in the KITTI tracking layout (the project's embedded default dataset).
+
+Entry points:
+
+* :func:`ensure_world` — the root of a world, generated once into the cache and reused.
+* :func:`generate_world` — generate a world into a directory (``pointtrack generate``).
+* :data:`PRESETS` (``tiny``, ``small``, ``default``) and :data:`SENSORS` (``hdl64``, ``hdl32``).
+
+Read a world with ``envs.data.KittiTracking(root, split, categories)``.
+"""
+
+from envs.synthetic.objects import CATEGORIES, SIZE_STATS
+from envs.synthetic.sensor import SENSORS, SensorModel, get_sensor
+from envs.synthetic.world import (
+    GENERATOR_VERSION,
+    KITTI_LIKE_CALIBRATION,
+    PRESETS,
+    Preset,
+    default_cache_dir,
+    ensure_world,
+    generate_world,
+    get_preset,
+)
+
+__all__ = [
+    "CATEGORIES",
+    "GENERATOR_VERSION",
+    "KITTI_LIKE_CALIBRATION",
+    "PRESETS",
+    "SENSORS",
+    "SIZE_STATS",
+    "Preset",
+    "SensorModel",
+    "default_cache_dir",
+    "ensure_world",
+    "generate_world",
+    "get_preset",
+    "get_sensor",
+]

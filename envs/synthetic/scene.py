@@ -1,0 +1,1109 @@
+"""Procedural street scenes: layout, static clutter, agents and their motion, and frame rendering.
+
+World frame: x along the main street, y to its left, z up (metres); the ground is a slightly
+sloped plane ``z = a x + b y`` plus a few centimetres of smooth roughness. Right-hand traffic:
+lanes with ``y < 0`` drive towards +x, lanes with ``y > 0`` towards -x. Each side of the road,
+from the centre line out: driving lanes, a bike lane, an optional parking lane, a raised sidewalk
+(kerb zone with trees, poles, signs and bike racks; then a walking zone), then buildings, walls
+and hedges. An optional cross street cuts the blocks; some vehicles turn right into it.
+
+Everything random is drawn from ``numpy.random.default_rng([seed, scene_id])`` in a fixed order,
+so a scene is a pure function of ``(seed, scene_id, config)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from envs.synthetic.objects import (
+    CATEGORIES,
+    ObjectModel,
+    make_object,
+    sample_size,
+    segments_to_parts,
+)
+from envs.synthetic.raycast import BOX, CYLINDER, ELLIPSOID, CastResult, Parts, box_parts, cast
+from envs.synthetic.sensor import SensorModel
+
+__all__ = [
+    "DT",
+    "FOV_HALF_ANGLE",
+    "LABEL_RANGE",
+    "Agent",
+    "FrameResult",
+    "Ground",
+    "Scene",
+    "SceneConfig",
+    "build_scene",
+    "render_frame",
+]
+
+DT = 0.1  # seconds per frame (10 Hz, as KITTI)
+FOV_HALF_ANGLE = math.radians(45.0)  # labelled field of view: the front camera, as KITTI
+LABEL_RANGE = 70.0  # metres; objects farther away are not labelled
+_F = np.float32
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Knobs of one generated scene.
+
+    Attributes:
+        n_frames: frames to simulate (10 Hz).
+        density: multiplier of the number of moving and parked agents (1 = city street).
+        static_density: multiplier of trees, poles, signs and buildings' detail.
+        required: categories that must appear as labelled targets (placed in view mid-scene).
+    """
+
+    n_frames: int
+    density: float = 1.0
+    static_density: float = 1.0
+    required: tuple[str, ...] = CATEGORIES
+
+    def __post_init__(self) -> None:
+        if self.n_frames < 2:
+            raise ValueError(f"n_frames must be >= 2, got {self.n_frames}")
+        if self.density < 0 or self.static_density < 0:
+            raise ValueError(
+                f"density and static_density must be >= 0, got {self.density}, "
+                f"{self.static_density}"
+            )
+        bad = [c for c in self.required if c not in CATEGORIES]
+        if bad:
+            raise ValueError(f"unknown required categories {bad}; valid: {', '.join(CATEGORIES)}")
+
+
+@dataclass
+class Ground:
+    """Ground surface: plane ``z = slope_x x + slope_y y`` plus roughness, and its reflectivity.
+
+    Attributes:
+        slope_x, slope_y: plane slopes (dimensionless).
+        rough_amp, rough_k, rough_phase: ``(K,)``, ``(K, 2)``, ``(K,)`` sinusoidal roughness:
+            ``sum_i amp_i sin(k_i . (x, y) + phase_i)`` metres.
+        road_y: ``(2,)`` road edges ``(right, left)`` in world y.
+        markings_y: ``(M,)`` lane-line positions in world y (dashed, 3 m on / 6 m off).
+        cross_x, cross_half: cross-street centre x and half width (``nan`` when absent).
+        asphalt, paint, verge: reflectivities.
+    """
+
+    slope_x: float
+    slope_y: float
+    rough_amp: np.ndarray
+    rough_k: np.ndarray
+    rough_phase: np.ndarray
+    road_y: tuple[float, float]
+    markings_y: np.ndarray
+    cross_x: float
+    cross_half: float
+    asphalt: float = 0.15
+    paint: float = 0.7
+    verge: float = 0.22
+    curb_h: float = 0.0
+    sidewalk_w: float = 0.0
+
+    def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Plane height (no roughness) at world ``(x, y)``, metres."""
+        return self.slope_x * np.asarray(x) + self.slope_y * np.asarray(y)
+
+    def surface(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Height of what one stands on at ``(x, y)``: the ground, or the top of a sidewalk
+        (``curb_h`` higher) in the sidewalk bands outside the cross street."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        on = ((y < self.road_y[0]) & (y >= self.road_y[0] - self.sidewalk_w)) | (
+            (y > self.road_y[1]) & (y <= self.road_y[1] + self.sidewalk_w)
+        )
+        if math.isfinite(self.cross_x):
+            on &= np.abs(x - self.cross_x) > self.cross_half
+        return self.height(x, y) + np.where(on, self.curb_h, 0.0)
+
+    def roughness(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        out = np.zeros(np.shape(x), dtype=_F)
+        for a, k, ph in zip(self.rough_amp, self.rough_k, self.rough_phase, strict=True):
+            out += _F(a) * np.sin(_F(k[0]) * x + _F(k[1]) * y + _F(ph))
+        return out
+
+    def reflectivity(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        on_road = (y >= self.road_y[0]) & (y <= self.road_y[1])
+        if math.isfinite(self.cross_x):
+            on_road |= np.abs(x - self.cross_x) <= self.cross_half
+        refl = np.where(on_road, _F(self.asphalt), _F(self.verge)).astype(_F)
+        dashed = (x % _F(9.0)) < 3.0
+        for ym in self.markings_y:
+            refl[(np.abs(y - ym) < 0.08) & dashed & on_road] = self.paint
+        for ye in self.road_y:  # solid edge lines
+            refl[np.abs(y - (ye - math.copysign(0.3, ye))) < 0.08] = self.paint
+        return refl
+
+
+@dataclass
+class Agent:
+    """A labelled object over the whole scene (moving or parked).
+
+    Attributes:
+        track_id: id written to the labels.
+        category: one of :data:`~envs.synthetic.objects.CATEGORIES`.
+        model: its part model.
+        pose: ``(T, 3)`` world ``(x, y, yaw)`` of the box centre per frame.
+        phase: ``(T,)`` gait / pedal phase, radians.
+        amplitude: ``(T,)`` limb swing in [0, 1] (0 when standing).
+        present: ``(T,)`` bool, the object exists in that frame (``None``: always). Replayed
+            label tracks exist only in their labelled frames.
+        z: ``(T,)`` world z of the box centre (``None``: standing on the ground plane).
+    """
+
+    track_id: int
+    category: str
+    model: ObjectModel
+    pose: np.ndarray
+    phase: np.ndarray
+    amplitude: np.ndarray
+    present: np.ndarray | None = None
+    z: np.ndarray | None = None
+
+
+@dataclass
+class Scene:
+    """A generated scene (world-frame description, rendered frame by frame).
+
+    Attributes:
+        scene_id: the KITTI-style scene number.
+        n_frames: number of frames.
+        ground: the ground model.
+        ego: ``(T, 3)`` world ``(x, y, yaw)`` of the sensor per frame.
+        static_bounds: ``(S, 7)`` world boxes of static objects (buildings, sidewalks, trees...).
+        static_solid: ``(S,)`` bool, the box is the surface.
+        static_refl: ``(S,)`` reflectivity of solid ones.
+        static_parts: world-frame parts of the non-solid static objects (owner indexes ``S``).
+        agents: the labelled objects.
+    """
+
+    scene_id: int
+    n_frames: int
+    ground: Ground
+    ego: np.ndarray
+    static_bounds: np.ndarray
+    static_solid: np.ndarray
+    static_refl: np.ndarray
+    static_parts: Parts
+    agents: list[Agent] = field(default_factory=list)
+
+
+@dataclass
+class FrameResult:
+    """One rendered frame.
+
+    Attributes:
+        points: ``(N, 4)`` float32 scan (sensor frame, intensity in [0, 1]).
+        agent_index: ``(A_f,)`` indices into ``scene.agents`` of the agents present this frame.
+        boxes: ``(A_f, 7)`` their boxes in the sensor frame.
+        in_fov: ``(A_f,)`` bool, inside the labelled field of view.
+        n_points: ``(A_f,)`` points returned by each agent.
+        bbox_rays: ``(A_f,)`` rays entering each agent's box within range (computed for agents
+            in the field of view only; 0 for the others).
+        clear_rays: ``(A_f,)`` of those, rays not blocked by anything before reaching the box.
+    """
+
+    points: np.ndarray
+    agent_index: np.ndarray
+    boxes: np.ndarray
+    in_fov: np.ndarray
+    n_points: np.ndarray
+    bbox_rays: np.ndarray
+    clear_rays: np.ndarray
+
+
+# --------------------------------------------------------------------------- motion helpers
+
+
+def speed_profile(
+    rng: np.random.Generator, n: int, v_mean: float, stop_prob: float, accel: float = 2.0
+) -> np.ndarray:
+    """``(n,)`` speeds (m/s) at 10 Hz: piecewise targets every 2–6 s (sometimes a stop), tracked
+    with a bounded acceleration so speed changes look like driving."""
+    v = np.empty(n)
+    cur = v_mean * rng.uniform(0.7, 1.15)
+    target = cur
+    next_change = int(rng.integers(20, 60))
+    for t in range(n):
+        if t == next_change:
+            target = 0.0 if rng.random() < stop_prob else v_mean * rng.uniform(0.5, 1.2)
+            next_change += int(rng.integers(20, 60))
+        cur += float(np.clip(target - cur, -accel * DT, accel * DT))
+        v[t] = max(cur, 0.0)
+    return v
+
+
+def _cumdist(v: np.ndarray) -> np.ndarray:
+    """Distance travelled at each frame (0 at frame 0) from speeds ``(T,)``."""
+    return np.concatenate([[0.0], np.cumsum(v[:-1] * DT)])
+
+
+def _lane_path(
+    s: np.ndarray, x0: float, y0: float, direction: float, turn: tuple[float, float] | None
+) -> np.ndarray:
+    """``(T, 3)`` poses along a lane at arc lengths ``s`` from ``(x0, y0)``; ``direction`` is +1
+    (towards +x) or -1. ``turn = (x_t, r)``: a right turn of radius ``r`` that ends heading along
+    the cross street in the lane at ``x = x_t`` (given for direction +1 in the +x frame)."""
+    # Work in the frame where the lane runs towards +x, then map back.
+    xs = x0 * direction
+    ys = y0 * direction
+    pos = np.empty((len(s), 3))
+    if turn is None:
+        pos[:, 0] = xs + s
+        pos[:, 1] = ys
+        pos[:, 2] = 0.0
+    else:
+        x_t, r = turn
+        s1 = (x_t - r) - xs  # arc starts here
+        s2 = s1 + 0.5 * math.pi * r
+        straight = s <= s1
+        arc = (s > s1) & (s <= s2)
+        after = s > s2
+        pos[straight, 0] = xs + s[straight]
+        pos[straight, 1] = ys
+        pos[straight, 2] = 0.0
+        phi = (s[arc] - s1) / r
+        pos[arc, 0] = x_t - r + r * np.sin(phi)
+        pos[arc, 1] = ys - r + r * np.cos(phi)
+        pos[arc, 2] = -phi
+        pos[after, 0] = x_t
+        pos[after, 1] = ys - r - (s[after] - s2)
+        pos[after, 2] = -0.5 * math.pi
+    if direction < 0:
+        pos[:, 0] = -pos[:, 0]
+        pos[:, 1] = -pos[:, 1]
+        pos[:, 2] = pos[:, 2] + math.pi
+    pos[:, 2] = (pos[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    return pos
+
+
+def _drift(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``(n,)`` a slow sinusoidal speed offset (m/s): +-1 to 2.5 m/s over 8–20 s, i.e. a few
+    metres of relative back-and-forth motion."""
+    period = rng.uniform(8.0, 20.0) / DT
+    amp = rng.uniform(1.0, 2.5)
+    return amp * np.sin(2 * np.pi * np.arange(n) / period + rng.uniform(0, 2 * np.pi))
+
+
+def _polyline_walk(
+    rng: np.random.Generator, n: int, points: np.ndarray, speed: float, pause_at: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Walk along the waypoints ``points (K, 2)`` at ``speed`` m/s, pausing 1–3 s on reaching
+    waypoint ``pause_at`` (waiting at the kerb), standing still at the end. Returns poses
+    ``(n, 3)`` (heading along the current segment) and speeds ``(n,)``."""
+    seg = np.diff(points, axis=0)
+    cum = np.concatenate([[0.0], np.cumsum(np.hypot(seg[:, 0], seg[:, 1]))])
+    s_pause = cum[pause_at]
+    pause = int(rng.integers(10, 30))
+    s = np.empty(n)
+    v = np.empty(n)
+    cur, waited = 0.0, 0
+    for t in range(n):
+        s[t] = cur
+        if cur >= s_pause and waited < pause:
+            waited += 1
+            v[t] = 0.0
+        else:
+            v[t] = speed if cur < cum[-1] else 0.0
+        cur = min(cur + v[t] * DT, cum[-1])
+        if cur > s_pause and waited == 0 and s[t] < s_pause:
+            cur = s_pause  # stop exactly at the kerb
+    k = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
+    pose = np.empty((n, 3))
+    pose[:, 0] = np.interp(s, cum, points[:, 0])
+    pose[:, 1] = np.interp(s, cum, points[:, 1])
+    pose[:, 2] = np.arctan2(seg[k, 1], seg[k, 0])
+    return pose, v
+
+
+def _walk(
+    rng: np.random.Generator,
+    n: int,
+    x0: float,
+    y0: float,
+    heading: float,
+    y_lo: float,
+    y_hi: float,
+    speed: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A pedestrian walking in the strip ``y_lo <= y <= y_hi``: smooth heading wander, pauses and
+    occasional turn-arounds. Returns poses ``(n, 3)`` and speeds ``(n,)``."""
+    pose = np.empty((n, 3))
+    v = np.empty(n)
+    x, y, th = x0, y0, heading
+    base = heading
+    cur_v = speed
+    paused = 0
+    dth = 0.0
+    for t in range(n):
+        if paused > 0:
+            paused -= 1
+            cur_v = max(cur_v - 1.5 * DT * 4, 0.0)
+        else:
+            if rng.random() < 0.01:
+                paused = int(rng.integers(10, 40))
+            if rng.random() < 0.004:
+                base = base + math.pi
+            cur_v = min(cur_v + 1.0 * DT * 4, speed)
+        dth = 0.9 * dth + rng.normal(0.0, 0.02)
+        th = th + dth + 0.08 * math.sin(base - th)
+        # Stay inside the walking strip: steer back along the street near its edges.
+        if (y <= y_lo and math.sin(th) < 0) or (y >= y_hi and math.sin(th) > 0):
+            th = math.atan2(-0.3 * math.sin(th), math.cos(th))
+        x += cur_v * DT * math.cos(th)
+        y = min(max(y + cur_v * DT * math.sin(th), y_lo), y_hi)
+        pose[t] = (x, y, th)
+        v[t] = cur_v
+    pose[:, 2] = (pose[:, 2] + math.pi) % (2 * math.pi) - math.pi
+    return pose, v
+
+
+# --------------------------------------------------------------------------- scene building
+
+
+class _Static:
+    """Accumulates static objects (world frame)."""
+
+    def __init__(self) -> None:
+        self.bounds: list[np.ndarray] = []
+        self.solid: list[bool] = []
+        self.refl: list[float] = []
+        self.parts: list[Parts] = []
+
+    def solid_box(self, x, y, z0, l, w, h, yaw, refl) -> None:
+        self.bounds.append(np.array([x, y, z0 + h / 2, l, w, h, yaw], dtype=np.float64))
+        self.solid.append(True)
+        self.refl.append(refl)
+
+    def composite(self, parts: Parts, bounds: np.ndarray) -> None:
+        idx = len(self.bounds)
+        self.bounds.append(np.asarray(bounds, dtype=np.float64))
+        self.solid.append(False)
+        self.refl.append(0.0)
+        parts.owner = np.full(len(parts), idx, dtype=np.int64)
+        self.parts.append(parts)
+
+
+def _single(kind: int, center, half, refl: float, rot=None) -> Parts:
+    return Parts(
+        np.array([kind], np.int8),
+        np.asarray(center, float).reshape(1, 3),
+        (np.eye(3) if rot is None else np.asarray(rot, float)).reshape(1, 3, 3),
+        np.asarray(half, float).reshape(1, 3),
+        np.array([refl], _F),
+        np.zeros(1, np.int64),
+    )
+
+
+def _tree(st: _Static, g: Ground, x: float, y: float, rng: np.random.Generator) -> None:
+    z = float(g.height(x, y))
+    r_t = rng.uniform(0.1, 0.25)
+    crown_r = rng.uniform(1.2, 2.6)
+    crown_h = rng.uniform(1.4, 3.0)
+    trunk_top = rng.uniform(2.0, 3.5)
+    top = trunk_top + 2 * crown_h * 0.85
+    parts = Parts.concat(
+        [
+            _single(
+                CYLINDER, (x, y, z + trunk_top / 2 + 0.3), (r_t, r_t, trunk_top / 2 + 0.3), 0.3
+            ),
+            _single(
+                ELLIPSOID,
+                (x, y, z + trunk_top + crown_h * 0.85),
+                (crown_r, crown_r * 0.9, crown_h),
+                0.2,
+            ),
+        ]
+    )
+    st.composite(parts, [x, y, z + top / 2, 2 * crown_r, 2 * crown_r, top + 0.2, 0.0])
+
+
+def _pole(st: _Static, g: Ground, x: float, y: float, rng: np.random.Generator, side: float):
+    z = float(g.height(x, y))
+    if rng.random() < 0.5:  # street lamp with an arm over the road
+        hgt = rng.uniform(6.0, 8.5)
+        arm = rng.uniform(1.0, 2.0)
+        parts = Parts.concat(
+            [
+                _single(CYLINDER, (x, y, z + hgt / 2), (0.09, 0.09, hgt / 2), 0.5),
+                _single(BOX, (x, y - side * arm / 2, z + hgt - 0.1), (0.15, arm / 2, 0.08), 0.5),
+            ]
+        )
+        st.composite(
+            parts, [x, y - side * arm / 2, z + hgt / 2 + 0.1, 0.4, arm + 0.2, hgt + 0.2, 0.0]
+        )
+    else:  # traffic sign: thin pole and a retro-reflective plate (bright in intensity)
+        hgt = rng.uniform(2.2, 3.0)
+        parts = Parts.concat(
+            [
+                _single(CYLINDER, (x, y, z + hgt / 2), (0.04, 0.04, hgt / 2), 0.5),
+                _single(BOX, (x, y, z + hgt + 0.3), (0.03, 0.35, 0.3), 0.95),
+            ]
+        )
+        st.composite(parts, [x, y, z + (hgt + 0.6) / 2, 0.2, 0.8, hgt + 0.7, 0.0])
+
+
+def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
+    """Generate scene ``scene_id`` of the world with ``seed``."""
+    rng = np.random.default_rng([int(seed), int(scene_id), 7])
+    n = config.n_frames
+    dens, sdens = config.density, config.static_density
+
+    # ---- road layout
+    lane_w = rng.uniform(3.2, 3.7)
+    n_lanes = 1 if rng.random() < 0.6 else 2
+    bike_w = 1.5
+    park_r = True
+    park_l = bool(rng.random() < 0.6)
+    park_w = 2.3
+    drive = n_lanes * lane_w
+    edge_r = -(drive + bike_w + (park_w if park_r else 0.0))
+    edge_l = drive + bike_w + (park_w if park_l else 0.0)
+    sidewalk = rng.uniform(2.5, 4.5)
+    curb_h = rng.uniform(0.1, 0.16)
+
+    # ---- ego motion
+    standing = rng.random() < 0.15
+    v_ego = speed_profile(rng, n, 0.0 if standing else rng.uniform(3.0, 11.0), 0.1)
+    ego_lane = -(int(rng.integers(0, n_lanes)) + 0.5) * lane_w
+    s_ego = _cumdist(v_ego)
+    wiggle = 0.15 * np.sin(s_ego / rng.uniform(20.0, 60.0) + rng.uniform(0, 2 * np.pi))
+    ego = np.stack([s_ego, ego_lane + wiggle, np.zeros(n)], 1)
+    ego[1:, 2] = np.arctan2(np.diff(ego[:, 1]), np.maximum(np.diff(ego[:, 0]), 1e-3))
+    ego[0, 2] = ego[1, 2] if n > 1 else 0.0
+    x_min, x_max = -40.0, float(s_ego[-1]) + 90.0
+
+    has_cross = rng.random() < 0.5
+    cross_x = float(s_ego[n // 2] + rng.uniform(15.0, 45.0)) if has_cross else math.nan
+    cross_half = drive + 1.0
+
+    markings = (
+        [0.0] + [k * lane_w for k in range(1, n_lanes)] + [-k * lane_w for k in range(1, n_lanes)]
+    )
+    k_mag = 2 * np.pi / rng.uniform(2.0, 15.0, 3)
+    k_dir = rng.uniform(0, 2 * np.pi, 3)
+    ground = Ground(
+        slope_x=float(rng.normal(0.0, 0.01)),
+        slope_y=float(rng.normal(0.0, 0.005)),
+        rough_amp=rng.uniform(0.005, 0.02, 3),
+        rough_k=np.stack([k_mag * np.cos(k_dir), k_mag * np.sin(k_dir)], 1),
+        rough_phase=rng.uniform(0, 2 * np.pi, 3),
+        road_y=(edge_r, edge_l),
+        markings_y=np.array(markings),
+        cross_x=cross_x,
+        cross_half=cross_half,
+        asphalt=float(rng.uniform(0.1, 0.2)),
+        curb_h=curb_h,
+        sidewalk_w=sidewalk,
+    )
+
+    def in_cross(x0: float, x1: float, margin: float = 0.0) -> bool:
+        return (
+            has_cross and x1 > cross_x - cross_half - margin and x0 < cross_x + cross_half + margin
+        )
+
+    # ---- static world
+    st = _Static()
+    kerb_x: dict[float, list[float]] = {}  # x of trees and poles in each kerb zone
+    for side, edge in ((-1.0, edge_r), (1.0, edge_l)):
+        # Sidewalk slabs in segments (tighter culling windows), cut at the cross street.
+        x = x_min
+        while x < x_max:
+            # 10 m slabs: short enough that the level slab follows the sloped ground (and the
+            # culling windows stay tight).
+            seg = min(10.0, x_max - x)
+            if not in_cross(x, x + seg):
+                yc = edge + side * sidewalk / 2
+                zc = float(ground.height(x + seg / 2, yc))
+                st.solid_box(x + seg / 2, yc, zc - 0.3, seg, sidewalk, 0.3 + curb_h, 0.0, 0.3)
+            x += seg
+        # Buildings, walls and hedges behind the sidewalk.
+        x = x_min + rng.uniform(-5, 5)
+        while x < x_max:
+            length = rng.uniform(6.0, 30.0)
+            setback = rng.uniform(0.0, 3.0) if rng.random() < 0.5 else 0.0
+            if not in_cross(x, x + length, 2.0):
+                y_front = edge + side * (sidewalk + setback)
+                kind = rng.random()
+                if kind < 0.75:
+                    depth = rng.uniform(8.0, 15.0)
+                    hgt = rng.uniform(4.0, 18.0)
+                    yc = y_front + side * depth / 2
+                    st.solid_box(
+                        x + length / 2,
+                        yc,
+                        float(ground.height(x, yc)) - 0.5,
+                        length,
+                        depth,
+                        hgt + 0.5,
+                        0.0,
+                        float(rng.uniform(0.2, 0.6)),
+                    )
+                elif kind < 0.9:
+                    hgt = rng.uniform(1.0, 2.2)
+                    yc = y_front + side * 0.15
+                    st.solid_box(
+                        x + length / 2,
+                        yc,
+                        float(ground.height(x, yc)) - 0.2,
+                        length,
+                        0.3,
+                        hgt + 0.2,
+                        0.0,
+                        float(rng.uniform(0.2, 0.6)),
+                    )
+                else:
+                    hgt = rng.uniform(0.8, 1.6)
+                    yc = y_front + side * 0.6
+                    st.solid_box(
+                        x + length / 2,
+                        yc,
+                        float(ground.height(x, yc)) - 0.2,
+                        length,
+                        1.2,
+                        hgt + 0.2,
+                        0.0,
+                        0.18,
+                    )
+            x += length + (rng.uniform(0.0, 8.0) if rng.random() < 0.5 else 0.0)
+        # Kerb-zone clutter: trees, poles, signs (kept apart from bike racks, see below).
+        x = x_min + rng.uniform(0, 8)
+        kerb_x[side] = []
+        tree_gap = rng.uniform(7.0, 15.0)
+        has_trees = rng.random() < 0.7
+        while x < x_max:
+            if not in_cross(x - 3, x + 3):
+                y = edge + side * 0.6
+                r = rng.random()
+                if has_trees and r < 0.6 * min(sdens, 1.5):
+                    _tree(st, ground, x, y, rng)
+                    kerb_x[side].append(x)
+                elif r < 0.6 * min(sdens, 1.5) + 0.25 * sdens:
+                    _pole(st, ground, x, y + side * 0.1, rng, side)
+                    kerb_x[side].append(x)
+            x += tree_gap * rng.uniform(0.8, 1.2)
+
+    agents: list[Agent] = []
+    next_id = [0]
+
+    def add_agent(category, model, pose, phase=None, amplitude=None) -> Agent:
+        a = Agent(
+            track_id=next_id[0],
+            category=category,
+            model=model,
+            pose=np.asarray(pose, dtype=np.float64),
+            phase=np.zeros(n) if phase is None else phase,
+            amplitude=np.zeros(n) if amplitude is None else amplitude,
+        )
+        next_id[0] += 1
+        agents.append(a)
+        return a
+
+    def static_pose(x, y, yaw) -> np.ndarray:
+        return np.tile(np.array([x, y, yaw], dtype=np.float64), (n, 1))
+
+    # Parking slots: list of occupied [x0, x1] per parking lane (collision-free by construction).
+    park_slots: dict[float, list[tuple[float, float]]] = {-1.0: [], 1.0: []}
+
+    def park(category: str, side: float, x_center: float, ridden: bool = False) -> bool:
+        if side > 0 and not park_l:
+            return False
+        size = sample_size(category, rng, ridden=ridden)
+        yc = side * (drive + bike_w + park_w / 2)
+        if category == "Motorcycle":  # parked across the lane
+            half_x = size[1] / 2 + 0.2
+            yaw = side * 0.5 * math.pi + rng.normal(0, 0.1)
+            yc = side * (drive + bike_w + park_w - size[0] / 2 - 0.2)
+        else:
+            half_x = size[0] / 2
+            yaw = (0.0 if side < 0 else math.pi) + rng.normal(0, 0.02)
+            if rng.random() < 0.15:
+                yaw += math.pi
+            yc += side * rng.uniform(-0.15, 0.15)
+        x0, x1 = x_center - half_x - 0.4, x_center + half_x + 0.4
+        if in_cross(x0, x1, 3.0):
+            return False
+        if any(x0 < b and a < x1 for a, b in park_slots[side]):
+            return False
+        park_slots[side].append((x0, x1))
+        model = make_object(category, size, rng, ridden=ridden)
+        add_agent(category, model, static_pose(x_center, yc, yaw))
+        return True
+
+    def cyclist(
+        category: str, side: float, x_mid: float, v_mean: float, alongside: bool = False
+    ) -> None:
+        size = sample_size(category, rng, ridden=True)
+        model = make_object(category, size, rng, ridden=True)
+        y = side * (drive + bike_w / 2)
+        direction = -side
+        if alongside:  # riding beside a slow ego, in and out of the field of view
+            v = np.maximum(v_ego + _drift(rng, n), 0.0)
+            s = _cumdist(v)
+            x0 = float(ego[0, 0]) + abs(y - ego_lane) / math.tan(FOV_HALF_ANGLE)
+            x0 += rng.uniform(1.0, 4.0)
+        else:
+            v = speed_profile(rng, n, v_mean, 0.05, accel=1.0)
+            s = _cumdist(v)
+            # Position so that at mid-scene it is at x_mid.
+            x0 = x_mid - direction * s[n // 2]
+        pose = _lane_path(s, x0, y, direction, None)
+        phase = s / (2.1 * 2.5) * 2 * np.pi + rng.uniform(0, 2 * np.pi)
+        add_agent(category, model, pose, phase, (v > 0.2).astype(float))
+
+    def pedestrian(side: float, x0: float, standing: bool) -> None:
+        size = sample_size("Pedestrian", rng)
+        model = make_object("Pedestrian", size, rng)
+        edge = edge_r if side < 0 else edge_l
+        # Walking zone: behind the kerb zone (trees, poles, parked bicycles up to ~2 m).
+        y_lo, y_hi = sorted(
+            (edge + side * min(2.1, sidewalk - 0.5), edge + side * (sidewalk - 0.4))
+        )
+        y0 = rng.uniform(y_lo, max(y_hi, y_lo + 0.01))
+        if standing:
+            pose = static_pose(x0, y0, rng.uniform(-np.pi, np.pi))
+            add_agent("Pedestrian", model, pose)
+            return
+        heading = 0.0 if rng.random() < 0.5 else math.pi
+        speed = rng.uniform(0.9, 1.6)
+        if rng.random() < 0.2:
+            # Crossing the street: along the sidewalk, wait at the kerb, across, then on along
+            # the far sidewalk. Crossings that would meet a vehicle are dropped later by the
+            # overlap pass, so the survivors cross in gaps of the traffic.
+            other = edge_l if side < 0 else edge_r
+            y1 = other - side * rng.uniform(min(2.1, sidewalk - 0.5), sidewalk - 0.4)
+            along = math.cos(heading)
+            xk = x0 + along * rng.uniform(2.0, 12.0)
+            pts = np.array(
+                [
+                    [x0, y0],
+                    [xk, edge + side * 0.3],
+                    [xk + along * 1.0, y1],
+                    [xk + along * 40.0, y1],
+                ]
+            )
+            pose, v = _polyline_walk(rng, n, pts, speed, pause_at=1)
+        else:
+            pose, v = _walk(rng, n, x0, y0, heading, y_lo, y_hi, speed)
+        stride = 1.45 * size[2] / 1.75
+        phase = _cumdist(v) / stride * 2 * np.pi + rng.uniform(0, 2 * np.pi)
+        add_agent("Pedestrian", model, pose, phase, np.clip(v / 1.1, 0.0, 1.0))
+
+    def bike_rack(side: float, x_center: float, count: int) -> None:
+        edge = edge_r if side < 0 else edge_l
+        # Slide along the kerb until clear of trees, poles and the cross street.
+        for _ in range(20):
+            x0, x1 = x_center - 0.6, x_center + 0.75 * (count - 1) + 0.6
+            clutter = np.asarray(kerb_x.get(side, []))
+            if (
+                not in_cross(x0, x1, 1.0)
+                and not ((clutter > x0 - 0.4) & (clutter < x1 + 0.4)).any()
+            ):
+                break
+            x_center += 2.0
+        for i in range(count):
+            size = sample_size("Bicycle", rng, ridden=False)
+            model = make_object("Bicycle", size, rng, ridden=False)
+            y = edge + side * (0.3 + size[0] / 2)
+            add_agent("Bicycle", model, static_pose(x_center + 0.75 * i, y, side * 0.5 * math.pi))
+
+    x_mid_ego = float(s_ego[n // 2])
+
+    def oncoming(category: str, x_mid: float) -> None:
+        """A vehicle in the oncoming lane that passes ``x_mid`` at mid-scene."""
+        size = sample_size(category, rng, ridden=True)
+        model = make_object(category, size, rng, ridden=True)
+        v = speed_profile(rng, n, rng.uniform(4.0, 9.0), 0.0)
+        s = _cumdist(v)
+        x0 = x_mid + s[n // 2]
+        add_agent(category, model, _lane_path(s, x0, 0.5 * lane_w, -1.0, None))
+
+    # ---- guaranteed targets: every required category is in view around mid-scene.
+    ahead = x_mid_ego + rng.uniform(12.0, 18.0)
+    n_guaranteed = [0]
+    for cat in config.required:
+        if cat in ("Car", "Van", "Truck", "Bus", "Motorcycle"):
+            # The free parking spot nearest to ~10 m ahead of the ego at mid-scene, on either
+            # side; when the street has none (cross street, long vehicles), an oncoming vehicle.
+            offsets = np.arange(-6.0, 60.0, 1.0)
+            order = np.argsort(np.abs(offsets - 10.0) + rng.uniform(0, 6.0, len(offsets)))
+            placed = False
+            for k in order:
+                side = -1.0 if (not park_l or rng.random() < 0.6) else 1.0
+                if park(cat, side, ahead + offsets[k]):
+                    placed = True
+                    break
+            if not placed:
+                oncoming(cat, ahead + rng.uniform(0.0, 20.0))
+        elif cat == "Pedestrian":
+            pedestrian(-1.0, ahead + rng.uniform(0.0, 15.0), standing=False)
+        elif cat == "Cyclist":
+            # Alongside only in longer scenes: it must still be labelled for a while.
+            slow_ego = 0.5 < float(np.mean(v_ego)) < 6.5 and n >= 60
+            cyclist(
+                "Cyclist",
+                -1.0,
+                ahead + rng.uniform(0.0, 15.0),
+                rng.uniform(3.0, 6.0),
+                alongside=slow_ego and rng.random() < 0.7,
+            )
+        elif cat == "Bicycle":
+            bike_rack(
+                -1.0 if rng.random() < 0.7 else 1.0,
+                ahead + rng.uniform(0.0, 20.0),
+                int(rng.integers(1, 4)),
+            )
+
+    n_guaranteed[0] = len(agents)
+
+    # ---- random traffic and people.
+    parked_weights = {"Car": 0.78, "Van": 0.12, "Truck": 0.03, "Bus": 0.01, "Motorcycle": 0.06}
+    for side in (-1.0, 1.0):
+        x = x_min
+        while x < x_max:
+            x += rng.uniform(4.0, 9.0) / max(dens, 0.05) ** 0.5
+            if rng.random() < min(0.75 * dens, 0.95):
+                cat = str(rng.choice(list(parked_weights), p=list(parked_weights.values())))
+                park(cat, side, x)
+                x += 4.0
+    moving_weights = {"Car": 0.72, "Van": 0.12, "Truck": 0.06, "Bus": 0.04, "Motorcycle": 0.06}
+    for direction in (1.0, -1.0):
+        for lane in range(n_lanes):
+            y = -direction * (lane + 0.5) * lane_w
+            ego_lane_flow = direction > 0 and abs(y - ego_lane) < 0.1
+            if ego_lane_flow:
+                v = v_ego
+            drifting = direction > 0 and not ego_lane_flow and not standing
+            drifting = drifting and rng.random() < 0.6
+            if ego_lane_flow:
+                v = v_ego
+            elif drifting:
+                # The neighbouring lane drives alongside the ego, drifting slowly back and forth
+                # relative to it, its first car starting beside the ego at the edge of the
+                # labelled field of view: it leaves and re-enters the view, as in real drives.
+                v = np.maximum(v_ego + _drift(rng, n), 0.0)
+            else:
+                v = speed_profile(rng, n, rng.uniform(5.0, 13.0), 0.05)
+            s = _cumdist(v)
+            # Vehicles queue along the lane with gaps; the flow covers the visible stretch.
+            if ego_lane_flow:
+                pos = x_min if standing else float(ego[0, 0]) + rng.uniform(8.0, 25.0)
+            elif drifting:
+                boundary = float(ego[0, 0]) + abs(y - ego_lane) / math.tan(FOV_HALF_ANGLE)
+                pos = boundary - 2.0 + rng.uniform(-1.0, 2.0)
+            else:
+                pos = (x_min - s[-1]) if direction > 0 else x_min
+            first = True
+            end = x_max if direction > 0 else x_max + s[-1]
+            while pos < end:
+                cat = str(rng.choice(list(moving_weights), p=list(moving_weights.values())))
+                size = sample_size(cat, rng, ridden=True)
+                model = make_object(cat, size, rng, ridden=True)
+                front = pos + size[0]
+                x_c = front - size[0] / 2
+                if standing and ego_lane_flow and abs(x_c - ego[0, 0]) < size[0] / 2 + 4.0:
+                    pos = front + 2.0
+                    continue
+                turn = None
+                # Right turns into the cross street leave from the outermost lane.
+                turn_lane = lane == n_lanes - 1
+                if has_cross and turn_lane and not ego_lane_flow and rng.random() < 0.3:
+                    r = rng.uniform(6.0, 9.0)
+                    turn = (direction * cross_x - lane_w * 0.5, r)
+                x_start = x_c if direction > 0 else -x_c
+                pose = _lane_path(s, direction * x_start, y, direction, turn)
+                if (drifting and first) or rng.random() < min(1.0, 0.8 * dens):
+                    add_agent(cat, model, pose)
+                first = False
+                gap = rng.uniform(6.0, 40.0) / max(dens, 0.05)
+                pos = front + gap
+    for side in (-1.0, 1.0):
+        for _ in range(int(rng.poisson(1.5 * dens))):
+            cat = "Cyclist" if rng.random() < 0.7 else "Bicycle"
+            cyclist(cat, side, rng.uniform(x_min, x_max), rng.uniform(3.0, 7.0))
+        for _ in range(int(rng.poisson(6.0 * dens))):
+            pedestrian(side, rng.uniform(x_min + 20, x_max), standing=rng.random() < 0.25)
+        for _ in range(int(rng.poisson(0.8 * dens))):
+            bike_rack(side, rng.uniform(x_min, x_max), int(rng.integers(1, 5)))
+
+    agents = _remove_overlaps(agents, n_guaranteed[0])
+    static_parts = Parts.concat(st.parts)
+    return Scene(
+        scene_id=int(scene_id),
+        n_frames=n,
+        ground=ground,
+        ego=ego,
+        static_bounds=np.array(st.bounds).reshape(-1, 7),
+        static_solid=np.array(st.solid, dtype=bool),
+        static_refl=np.array(st.refl, dtype=_F),
+        static_parts=static_parts,
+        agents=agents,
+    )
+
+
+def _footprints_overlap(pose_a, size_a, pose_b, size_b) -> np.ndarray:
+    """Separating-axis test of oriented footprints per frame: poses ``(..., T, 3)`` (x, y,
+    yaw), sizes ``(..., 3)``; ``True`` where the rectangles (shrunk 5 %) intersect."""
+    d = pose_b[..., :2] - pose_a[..., :2]
+    axes = []
+    for pose in (pose_a, pose_b):
+        c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
+        axes += [np.stack([c, s], -1), np.stack([-s, c], -1)]
+    ua, va, ub, vb = axes
+    half_a = 0.475 * np.asarray(size_a)[..., None, :2]
+    half_b = 0.475 * np.asarray(size_b)[..., None, :2]
+    overlap = np.ones(d.shape[:-1], dtype=bool)
+    for ax in axes:
+        ra = half_a[..., 0] * np.abs((ua * ax).sum(-1)) + half_a[..., 1] * np.abs((va * ax).sum(-1))
+        rb = half_b[..., 0] * np.abs((ub * ax).sum(-1)) + half_b[..., 1] * np.abs((vb * ax).sum(-1))
+        overlap &= np.abs((d * ax).sum(-1)) <= ra + rb
+    return overlap
+
+
+def _remove_overlaps(agents: list[Agent], n_protected: int) -> list[Agent]:
+    """Drop agents whose footprint would overlap another's in some frame (independent speed
+    profiles, a cyclist at a turning car, a pedestrian meeting a parked bicycle...). The earlier
+    agent wins; the first ``n_protected`` (the guaranteed targets) are never dropped. Two static
+    agents are never in conflict (parked rows and racks are collision-free by construction).
+    Track ids are renumbered densely afterwards, keeping the order."""
+    if len(agents) < 2:
+        return agents
+    pose = np.stack([a.pose for a in agents])  # (A, T, 3)
+    size = np.stack([a.model.size for a in agents])  # (A, 3)
+    moving = np.array([np.ptp(a.pose[:, 0]) + np.ptp(a.pose[:, 1]) > 1e-6 for a in agents])
+    keep = np.ones(len(agents), dtype=bool)
+    for j in range(n_protected, len(agents)):
+        prev = np.flatnonzero(keep[:j])
+        prev = prev[moving[prev] | moving[j]]
+        if not len(prev):
+            continue
+        # Cheap circle pre-check, then the exact rectangle test for the close ones.
+        reach = 0.5 * (np.hypot(size[prev, 0], size[prev, 1]) + math.hypot(*size[j, :2]))
+        dist = np.linalg.norm(pose[prev, :, :2] - pose[j, None, :, :2], axis=-1).min(axis=1)
+        close = prev[dist < reach]
+        if (
+            len(close)
+            and _footprints_overlap(pose[close], size[close], pose[j][None], size[j][None]).any()
+        ):
+            keep[j] = False
+    out = [a for a, k in zip(agents, keep, strict=True) if k]
+    for i, a in enumerate(out):
+        a.track_id = i
+    return out
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+def _rot_z(yaw: np.ndarray) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    z, o = np.zeros_like(c), np.ones_like(c)
+    return np.stack(
+        [np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2
+    )
+
+
+def _rigid_agent_parts(scene: Scene) -> Parts:
+    """The rigid parts of every agent in its object frame, concatenated (owner = agent index);
+    cached on the scene."""
+    cached = getattr(scene, "_rigid_parts", None)
+    if cached is None:
+        items = []
+        for i, a in enumerate(scene.agents):
+            p = a.model.parts
+            items.append(
+                Parts(p.kind, p.center, p.rot, p.half, p.refl, np.full(len(p), i, np.int64))
+            )
+        cached = Parts.concat(items)
+        scene._rigid_parts = cached  # type: ignore[attr-defined]
+    return cached
+
+
+def _to_sensor(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """Object-frame points ``(K, 3)`` of boxes ``(K, 7)`` (sensor frame) -> sensor frame."""
+    c, s = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    out = np.empty_like(points)
+    out[:, 0] = c * points[:, 0] - s * points[:, 1] + boxes[:, 0]
+    out[:, 1] = s * points[:, 0] + c * points[:, 1] + boxes[:, 1]
+    out[:, 2] = points[:, 2] + boxes[:, 2]
+    return out
+
+
+def _place(parts: Parts, sel: np.ndarray, boxes: np.ndarray) -> Parts:
+    """Object-frame parts (``owner`` indexing ``boxes (A, 7)``, sensor frame) moved into the
+    sensor frame; only parts with ``sel`` true are kept."""
+    owner = parts.owner[sel]
+    b = boxes[owner]
+    center = _to_sensor(parts.center[sel], b)
+    c, s = np.cos(b[:, 6])[:, None], np.sin(b[:, 6])[:, None]
+    r = parts.rot[sel]
+    rot = np.empty_like(r)
+    rot[:, 0, :] = c * r[:, 0, :] - s * r[:, 1, :]
+    rot[:, 1, :] = s * r[:, 0, :] + c * r[:, 1, :]
+    rot[:, 2, :] = r[:, 2, :]
+    return Parts(parts.kind[sel], center, rot, parts.half[sel], parts.refl[sel], owner)
+
+
+def agent_boxes_world(scene: Scene, t: int) -> np.ndarray:
+    """``(A, 7)`` world boxes of all agents at frame ``t`` (bottom on the ground plane)."""
+    if not scene.agents:
+        return np.zeros((0, 7))
+    pose = np.array([a.pose[t] for a in scene.agents])
+    size = np.array([a.model.size for a in scene.agents])
+    # Standing on the road or on a sidewalk (pedestrians, parked bicycles).
+    z = scene.ground.surface(pose[:, 0], pose[:, 1]) + size[:, 2] / 2
+    fixed = [i for i, a in enumerate(scene.agents) if a.z is not None]
+    if fixed:
+        z[fixed] = [scene.agents[i].z[t] for i in fixed]
+    return np.column_stack([pose[:, 0], pose[:, 1], z, size, pose[:, 2]])
+
+
+def sensor_pose(scene: Scene, t: int, sensor: SensorModel) -> tuple[np.ndarray, float]:
+    """World position ``(3,)`` and yaw of the sensor at frame ``t``."""
+    x, y, yaw = scene.ego[t]
+    return np.array([x, y, float(scene.ground.height(x, y)) + sensor.height]), float(yaw)
+
+
+def world_to_sensor_boxes(boxes: np.ndarray, origin: np.ndarray, yaw: float) -> np.ndarray:
+    """World boxes ``(..., 7)`` -> sensor-frame boxes for a sensor at ``origin`` with ``yaw``."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    d = boxes[..., :3] - origin
+    out = np.array(boxes, dtype=np.float64, copy=True)
+    out[..., 0] = c * d[..., 0] + s * d[..., 1]
+    out[..., 1] = -s * d[..., 0] + c * d[..., 1]
+    out[..., 2] = d[..., 2]
+    out[..., 6] = (boxes[..., 6] - yaw + np.pi) % (2 * np.pi) - np.pi
+    return out
+
+
+def ground_hits(
+    ground: Ground, dirs: np.ndarray, origin: np.ndarray, yaw: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Range ``(R,)`` and reflectivity ``(R,)`` of each sensor ray's ground hit (``inf`` above
+    the horizon)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    # Ray directions in the world (sensor is level; yaw only).
+    wx = c * dirs[:, 0] - s * dirs[:, 1]
+    wy = s * dirs[:, 0] + c * dirs[:, 1]
+    wz = dirs[:, 2]
+    denom = wz - ground.slope_x * wx - ground.slope_y * wy
+    f0 = origin[2] - ground.slope_x * origin[0] - ground.slope_y * origin[1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0 = np.where(denom < -1e-4, -f0 / denom, np.inf).astype(_F)
+        finite = np.isfinite(t0)
+        hx = np.where(finite, origin[0] + t0 * wx, 0.0).astype(_F)
+        hy = np.where(finite, origin[1] + t0 * wy, 0.0).astype(_F)
+    # Roughness (first-order correction of the range along the ray) and reflectivity only for
+    # the rays that actually return from the ground.
+    idx = np.flatnonzero(finite & (t0 < 150.0))
+    t = np.full(len(dirs), np.inf, dtype=_F)
+    hx, hy = hx[idx], hy[idx]
+    t[idx] = t0[idx] + ground.roughness(hx, hy) / denom[idx].astype(_F)
+    refl = np.zeros(len(dirs), dtype=_F)
+    refl[idx] = ground.reflectivity(hx, hy)
+    return t, refl
+
+
+def render_frame(
+    scene: Scene, t: int, sensor: SensorModel, rng: np.random.Generator
+) -> FrameResult:
+    """Ray-cast frame ``t`` of ``scene`` with ``sensor``; noise and dropout from ``rng``."""
+    origin, yaw = sensor_pose(scene, t, sensor)
+    dirs = sensor.ray_directions()
+    g_t, g_refl = ground_hits(scene.ground, dirs, origin, yaw)
+    reach = sensor.max_range + 20.0
+
+    # Static objects near enough (the cast culls by angle; this only trims the far world).
+    sb = world_to_sensor_boxes(scene.static_bounds, origin, yaw)
+    s_keep = np.hypot(sb[:, 0], sb[:, 1]) - 0.5 * np.hypot(sb[:, 3], sb[:, 4]) < reach
+    s_idx = np.flatnonzero(s_keep)
+    # Agents near enough.
+    ab_world = agent_boxes_world(scene, t)
+    ab = world_to_sensor_boxes(ab_world, origin, yaw) if len(ab_world) else np.zeros((0, 7))
+    a_keep = np.hypot(ab[:, 0], ab[:, 1]) < reach if len(ab) else np.zeros(0, bool)
+    for i, a in enumerate(scene.agents):
+        if a.present is not None and not a.present[t]:
+            a_keep[i] = False
+    a_idx = np.flatnonzero(a_keep)
+
+    # Static primitives (owner -2): solid boxes directly, composite objects through their parts.
+    c, s_ = math.cos(yaw), math.sin(yaw)
+    r_t = np.array([[c, s_, 0.0], [-s_, c, 0.0], [0.0, 0.0, 1.0]])  # R_ego^T
+    solid_idx = s_idx[scene.static_solid[s_idx]]
+    items: list[Parts] = [
+        box_parts(sb[solid_idx], scene.static_refl[solid_idx], np.full(len(solid_idx), -2))
+    ]
+    sp = scene.static_parts
+    if len(sp):
+        sp_keep = s_keep[sp.owner]
+        kept = Parts(
+            sp.kind[sp_keep],
+            sp.center[sp_keep],
+            sp.rot[sp_keep],
+            sp.half[sp_keep],
+            sp.refl[sp_keep],
+            np.full(int(sp_keep.sum()), -2, np.int64),
+        )
+        items.append(kept.transformed(r_t, -r_t @ origin))
+    # Agent parts: object frame -> sensor frame; owner = agent index. Rigid parts of all agents
+    # are transformed in one vectorised step; animated limbs are rebuilt as segments.
+    if len(a_idx):
+        rigid = _rigid_agent_parts(scene)
+        sel = a_keep[rigid.owner]
+        items.append(_place(rigid, sel, ab))
+        p0s, p1s, rads, refls, owners = [], [], [], [], []
+        for ai in a_idx:
+            agent = scene.agents[ai]
+            if not agent.model.animate:
+                continue
+            p0, p1, rad, refl_l = agent.model.limbs(
+                float(agent.phase[t]), float(agent.amplitude[t])
+            )
+            p0s.append(p0)
+            p1s.append(p1)
+            rads.append(rad)
+            refls.append(refl_l)
+            owners.append(np.full(len(p0), ai, np.int64))
+        if p0s:
+            owner = np.concatenate(owners)
+            p0 = _to_sensor(np.concatenate(p0s), ab[owner])
+            p1 = _to_sensor(np.concatenate(p1s), ab[owner])
+            center, rot, half = segments_to_parts(p0, p1, np.concatenate(rads))
+            items.append(
+                Parts(
+                    np.full(len(owner), CYLINDER, np.int8),
+                    center,
+                    rot,
+                    half,
+                    np.concatenate(refls),
+                    owner,
+                )
+            )
+    parts = Parts.concat(items)
+
+    boxes = ab[a_idx]
+    az = np.arctan2(boxes[:, 1], boxes[:, 0])
+    dist = np.hypot(boxes[:, 0], boxes[:, 1])
+    in_fov = (np.abs(az) <= FOV_HALF_ANGLE) & (dist <= LABEL_RANGE) & (boxes[:, 0] > 0)
+    res: CastResult = cast(
+        sensor, parts, g_t, g_refl, rng, dirs, stat_bounds=boxes[in_fov], stat_owner=a_idx[in_fov]
+    )
+    n_pts_all = np.bincount(res.owner[res.owner >= 0], minlength=len(scene.agents))
+    bbox_rays = np.zeros(len(a_idx), np.int64)
+    clear_rays = np.zeros(len(a_idx), np.int64)
+    bbox_rays[in_fov] = res.bbox_rays
+    clear_rays[in_fov] = res.clear_rays
+    return FrameResult(
+        points=res.points,
+        agent_index=a_idx,
+        boxes=boxes,
+        in_fov=in_fov,
+        n_points=n_pts_all[a_idx],
+        bbox_rays=bbox_rays,
+        clear_rays=clear_rays,
+    )

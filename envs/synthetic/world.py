@@ -1,0 +1,554 @@
+"""Presets, the KITTI-layout writer, and the generate-once cache of synthetic worlds.
+
+A world directory holds ``velodyne/SSSS/FFFFFF.bin``, ``label_02/SSSS.txt``, ``calib/SSSS.txt``
+(the KITTI tracking layout, so :class:`envs.data.KittiTracking` reads it unchanged) and
+``manifest.json`` (generator version, preset, sensor, seed, the full config). A directory is only
+ever taken as complete when its manifest matches: generation writes into a temporary sibling
+directory and renames it into place at the end (atomic on one file system), so a killed run
+never leaves a half-written world under the final name, and two processes generating the same
+world end with one complete copy (the second rename fails and that process uses the first copy).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from envs.data.kitti import (
+    Calibration,
+    LabelRow,
+    lidar_to_camera_boxes,
+    write_calibration,
+    write_labels,
+    write_scan,
+)
+from envs.synthetic.objects import CATEGORIES
+from envs.synthetic.scene import (
+    DT,
+    FrameResult,
+    Scene,
+    SceneConfig,
+    build_scene,
+    render_frame,
+)
+from envs.synthetic.sensor import SensorModel, get_sensor
+
+__all__ = [
+    "GENERATOR_VERSION",
+    "KITTI_LIKE_CALIBRATION",
+    "PRESETS",
+    "Preset",
+    "default_cache_dir",
+    "ensure_world",
+    "generate_world",
+    "get_preset",
+    "label_rows",
+    "world_identity",
+]
+
+GENERATOR_VERSION = "1.0"
+
+
+def _source_digest() -> str:
+    """SHA-256 of the generator's own source files: any change to the code that makes worlds
+    invalidates cached worlds, even when nobody remembered to bump the version."""
+    h = hashlib.sha256()
+    for path in sorted(Path(__file__).resolve().parent.glob("*.py")):
+        if path.name in ("preview.py", "__init__.py"):
+            continue  # pictures and re-exports do not change the data
+        h.update(path.name.encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()[:16]
+
+
+SOURCE_DIGEST = _source_digest()
+MANIFEST = "manifest.json"
+IMAGE_SIZE = (1242, 375)  # KITTI camera 2 image, pixels (width, height)
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named world size.
+
+    Attributes:
+        name: preset name.
+        scenes: scene numbers (the KITTI split applies: train 0–16, val 17–18, test 19–20).
+        frames: ``(min, max)`` frames per scene (10 Hz), drawn per scene from the seed.
+        density: traffic / people multiplier (see :class:`SceneConfig`).
+        static_density: trees / poles multiplier.
+        column_factor: keep every n-th azimuth column of the sensor (``tiny`` uses 2: half the
+            horizontal resolution, so that it generates in seconds).
+    """
+
+    name: str
+    scenes: tuple[int, ...]
+    frames: tuple[int, int]
+    density: float
+    static_density: float
+    column_factor: int = 1
+
+
+PRESETS: dict[str, Preset] = {
+    # Tests: three short scenes, one per split; every category in every scene; half resolution.
+    "tiny": Preset("tiny", (0, 17, 19), (24, 24), 0.5, 0.5, column_factor=2),
+    # Demo: seven scenes (3 train, 2 val, 2 test), about a minute.
+    "small": Preset("small", (0, 1, 2, 17, 18, 19, 20), (50, 50), 0.8, 1.0),
+    # Benchmark: 21 scenes split like KITTI tracking.
+    "default": Preset("default", tuple(range(21)), (60, 140), 1.0, 1.0),
+}
+
+# A KITTI-like calibration (the 2011_09_26 rig: velodyne ~0.27 m behind and 0.08 m above the
+# left camera, rectification of camera 0), used for every generated scene.
+KITTI_LIKE_CALIBRATION = Calibration(
+    r0_rect=np.array(
+        [
+            [9.999239e-01, 9.837760e-03, -7.445048e-03],
+            [-9.869795e-03, 9.999421e-01, -4.278459e-03],
+            [7.402527e-03, 4.351614e-03, 9.999631e-01],
+        ]
+    ),
+    tr_velo_to_cam=np.array(
+        [
+            [7.533745e-03, -9.999714e-01, -6.166020e-04, -4.069766e-03],
+            [1.480249e-02, 7.280733e-04, -9.998902e-01, -7.631618e-02],
+            [9.998621e-01, 7.523790e-03, 1.480755e-02, -2.717806e-01],
+        ]
+    ),
+    p0=np.array([[721.5377, 0.0, 609.5593, 0.0], [0.0, 721.5377, 172.854, 0.0], [0, 0, 1.0, 0]]),
+    p1=np.array(
+        [[721.5377, 0.0, 609.5593, -387.5744], [0.0, 721.5377, 172.854, 0.0], [0, 0, 1.0, 0]]
+    ),
+    p2=np.array(
+        [
+            [721.5377, 0.0, 609.5593, 44.85728],
+            [0.0, 721.5377, 172.854, 0.2163791],
+            [0.0, 0.0, 1.0, 0.002745884],
+        ]
+    ),
+    p3=np.array(
+        [
+            [721.5377, 0.0, 609.5593, -339.5242],
+            [0.0, 721.5377, 172.854, 2.199936],
+            [0.0, 0.0, 1.0, 0.002729905],
+        ]
+    ),
+    tr_imu_to_velo=np.array(
+        [
+            [9.999976e-01, 7.553071e-04, -2.035826e-03, -8.086759e-01],
+            [-7.854027e-04, 9.998898e-01, -1.482298e-02, 3.195559e-01],
+            [2.024406e-03, 1.482454e-02, 9.998881e-01, -7.997231e-01],
+        ]
+    ),
+)
+
+
+def get_preset(name: str) -> Preset:
+    """The preset called ``name``; a ``ValueError`` lists the valid names otherwise."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; valid presets: {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+def _check_seed(seed: int) -> int:
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    return int(seed)
+
+
+def default_cache_dir() -> Path:
+    """``$POINTTRACK_CACHE`` if set, else the user cache dir of ``pointtrack``."""
+    env = os.environ.get("POINTTRACK_CACHE")
+    if env:
+        return Path(env).expanduser()
+    import platformdirs
+
+    return Path(platformdirs.user_cache_dir("pointtrack"))
+
+
+def _labels_digest(labels_dir: Path) -> str:
+    """SHA-256 over the label and calibration files (names and bytes)."""
+    h = hashlib.sha256()
+    for sub in ("label_02", "calib"):
+        for path in sorted((labels_dir / sub).glob("*.txt")):
+            h.update(f"{sub}/{path.name}\n".encode())
+            h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def world_identity(
+    preset: str,
+    sensor: str,
+    seed: int,
+    labels_dir: str | Path | None = None,
+    scan_frames: int | None = None,
+    scenes: tuple[int, ...] | None = None,
+) -> dict:
+    """The manifest fields that decide whether a world directory can be reused."""
+    p = get_preset(preset)
+    s = get_sensor(sensor)
+    seed = _check_seed(seed)
+    ident: dict = {
+        "generator": "pointtrack.envs.synthetic",
+        "generator_version": GENERATOR_VERSION,
+        "source_digest": SOURCE_DIGEST,
+        "preset": p.name,
+        "sensor": s.name,
+        "seed": seed,
+        "config": {
+            "preset": asdict(p),
+            "sensor": {k: v for k, v in asdict(s).items() if not k.startswith("_")},
+            "frame_rate_hz": 1.0 / DT,
+        },
+        "labels": None,
+        "scan_frames": None if scan_frames is None else int(scan_frames),
+        "scenes": None if scenes is None else [int(v) for v in scenes],
+    }
+    if labels_dir is not None:
+        root = Path(labels_dir)
+        if not (root / "label_02").is_dir():
+            raise ValueError(f"labels directory {root} has no label_02/ folder")
+        ident["labels"] = {"path": str(root.resolve()), "sha256": _labels_digest(root)}
+    if scan_frames is not None and scan_frames < 0:
+        raise ValueError(f"scan_frames must be >= 0, got {scan_frames}")
+    return ident
+
+
+def _read_manifest(root: Path) -> dict | None:
+    try:
+        return json.loads((root / MANIFEST).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _matches(root: Path, ident: dict) -> bool:
+    manifest = _read_manifest(root)
+    if manifest is None:
+        return False
+    ident_json = json.loads(json.dumps(ident))
+    return all(manifest.get(k) == v for k, v in ident_json.items())
+
+
+# --------------------------------------------------------------------------- labels
+
+
+def _image_boxes(cam: np.ndarray, calib: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """2D boxes ``(N, 4)`` (left, top, right, bottom, clipped to the image) and truncation
+    ``(N,)`` in [0, 1] of camera boxes ``(N, 7)`` ``[h, w, l, x, y, z, ry]`` through ``P2``."""
+    n = len(cam)
+    if n == 0:
+        return np.zeros((0, 4)), np.zeros(0)
+    h, w, l, x, y, z, ry = (cam[:, i] for i in range(7))
+    sx = np.array([1, 1, -1, -1, 1, 1, -1, -1]) * 0.5
+    sz = np.array([1, -1, -1, 1, 1, -1, -1, 1]) * 0.5
+    sy = np.array([0, 0, 0, 0, -1, -1, -1, -1])
+    c, s = np.cos(ry)[:, None], np.sin(ry)[:, None]
+    lx, lz = l[:, None] * sx, w[:, None] * sz
+    px = c * lx + s * lz + x[:, None]
+    pz = -s * lx + c * lz + z[:, None]
+    py = h[:, None] * sy + y[:, None]
+    pts = np.stack([px, py, pz, np.ones_like(px)], -1) @ calib.p2.T
+    depth = np.maximum(pts[..., 2], 0.1)
+    u, v = pts[..., 0] / depth, pts[..., 1] / depth
+    box = np.stack([u.min(1), v.min(1), u.max(1), v.max(1)], 1)
+    clipped = box.copy()
+    clipped[:, [0, 2]] = np.clip(box[:, [0, 2]], 0, IMAGE_SIZE[0] - 1)
+    clipped[:, [1, 3]] = np.clip(box[:, [1, 3]], 0, IMAGE_SIZE[1] - 1)
+    area = np.maximum(box[:, 2] - box[:, 0], 1e-6) * np.maximum(box[:, 3] - box[:, 1], 1e-6)
+    area_c = np.maximum(clipped[:, 2] - clipped[:, 0], 0) * np.maximum(
+        clipped[:, 3] - clipped[:, 1], 0
+    )
+    trunc = np.clip(1.0 - area_c / area, 0.0, 1.0)
+    trunc[(pts[..., 2] <= 0.1).any(1)] = np.maximum(trunc[(pts[..., 2] <= 0.1).any(1)], 0.5)
+    return clipped, trunc
+
+
+def _occlusion_level(bbox_rays: np.ndarray, clear_rays: np.ndarray) -> np.ndarray:
+    """KITTI occlusion state from the unoccluded share of the rays entering the box: 0 fully
+    visible (>= 75 %), 1 partly (>= 30 %), 2 largely occluded, 3 unknown (no ray reaches it)."""
+    frac = clear_rays / np.maximum(bbox_rays, 1)
+    level = np.where(frac >= 0.75, 0, np.where(frac >= 0.3, 1, 2))
+    return np.where(bbox_rays == 0, 3, level)
+
+
+def label_rows(scene: Scene, t: int, frame: FrameResult, calib: Calibration) -> list[LabelRow]:
+    """KITTI tracking label rows of the agents in the labelled field of view of frame ``t``."""
+    sel = np.flatnonzero(frame.in_fov)
+    if not len(sel):
+        return []
+    boxes = frame.boxes[sel]
+    cam = lidar_to_camera_boxes(boxes, calib)
+    bbox, trunc = _image_boxes(cam, calib)
+    occ = _occlusion_level(frame.bbox_rays[sel], frame.clear_rays[sel])
+    rows = []
+    for k, i in enumerate(sel):
+        agent = scene.agents[frame.agent_index[i]]
+        rows.append(
+            LabelRow.from_box(
+                t,
+                agent.track_id,
+                agent.category,
+                np.round(cam[k], 6),
+                truncated=round(float(trunc[k]), 2),
+                occluded=int(occ[k]),
+                bbox=np.round(bbox[k], 2),
+            )
+        )
+    rows.sort(key=lambda r: r.track_id)
+    return rows
+
+
+# --------------------------------------------------------------------------- generation
+
+
+def _progress(total: int, desc: str, progress: bool | None):
+    from tqdm.auto import tqdm
+
+    # progress=None: tqdm decides (shown on a terminal, silent in logs and tests).
+    return tqdm(
+        total=total,
+        desc=desc,
+        unit="frame",
+        disable=None if progress is None else not progress,
+        leave=False,
+    )
+
+
+def _scene_frames(preset: Preset, seed: int, scene_id: int) -> int:
+    lo, hi = preset.frames
+    rng = np.random.default_rng([seed, scene_id, 3])
+    return int(rng.integers(lo, hi + 1))
+
+
+def _generated_scenes(preset: Preset, seed: int, sensor: SensorModel) -> Iterator[tuple]:
+    for scene_id in preset.scenes:
+        cfg = SceneConfig(
+            n_frames=_scene_frames(preset, seed, scene_id),
+            density=preset.density,
+            static_density=preset.static_density,
+            required=CATEGORIES,
+        )
+        yield scene_id, build_scene(scene_id, seed, cfg)
+
+
+def _write_scene(
+    root: Path,
+    scene: Scene,
+    sensor: SensorModel,
+    seed: int,
+    calib: Calibration,
+    bar,
+    rows_override: list[str] | None = None,
+    scan_frames: int | None = None,
+) -> dict:
+    """Render and write one scene; returns its manifest entry."""
+    name = f"{scene.scene_id:04d}"
+    write_calibration(root / "calib" / f"{name}.txt", calib)
+    rows: list[LabelRow] = []
+    n_scans = scene.n_frames if scan_frames is None else min(scene.n_frames, scan_frames)
+    n_points = 0
+    for t in range(n_scans):
+        rng = np.random.default_rng([seed, scene.scene_id, 11, t])
+        frame = render_frame(scene, t, sensor, rng)
+        write_scan(root / "velodyne" / name / f"{t:06d}.bin", frame.points)
+        n_points += len(frame.points)
+        if rows_override is None:
+            rows.extend(label_rows(scene, t, frame, calib))
+        bar.update(1)
+    label_file = root / "label_02" / f"{name}.txt"
+    if rows_override is None:
+        write_labels(label_file, rows)
+        tracks = len({r.track_id for r in rows})
+        n_rows = len(rows)
+    else:  # label-driven replay: the source rows, byte for byte
+        label_file.parent.mkdir(parents=True, exist_ok=True)
+        label_file.write_text("".join(rows_override))
+        n_rows = sum(1 for r in rows_override if r.split()[2] != "DontCare")
+        tracks = len({r.split()[1] for r in rows_override if r.split()[2] != "DontCare"})
+    return {
+        "frames": scene.n_frames,
+        "scans": n_scans,
+        "label_rows": n_rows,
+        "tracks": tracks,
+        "mean_points": round(n_points / max(n_scans, 1), 1),
+    }
+
+
+def _generate_into(
+    tmp: Path,
+    ident: dict,
+    preset: Preset,
+    sensor: SensorModel,
+    seed: int,
+    labels_dir: Path | None,
+    progress: bool | None,
+    scan_frames: int | None,
+    scenes: tuple[int, ...] | None,
+) -> None:
+    calib = KITTI_LIKE_CALIBRATION
+    entries: dict[str, dict] = {}
+    if labels_dir is None:
+        if scan_frames is not None or scenes is not None:
+            raise ValueError("scan_frames and scenes apply to label-driven replay only")
+        total = sum(_scene_frames(preset, seed, s) for s in preset.scenes)
+        with _progress(total, f"synthetic {preset.name}/{sensor.name}", progress) as bar:
+            for scene_id, scene in _generated_scenes(preset, seed, sensor):
+                entries[f"{scene_id:04d}"] = _write_scene(tmp, scene, sensor, seed, calib, bar)
+    else:
+        from envs.synthetic.replay import build_replay_scene, replay_scene_ids
+
+        ids = replay_scene_ids(labels_dir) if scenes is None else tuple(scenes)
+        built = []
+        total = 0
+        for scene_id in ids:
+            scene, rows, scene_calib, rsensor = build_replay_scene(
+                labels_dir, scene_id, seed, sensor
+            )
+            built.append((scene_id, scene, rows, scene_calib, rsensor))
+            n = scene.n_frames if scan_frames is None else min(scene.n_frames, scan_frames)
+            total += n
+        with _progress(total, f"replay {labels_dir.name}/{sensor.name}", progress) as bar:
+            for scene_id, scene, rows, scene_calib, rsensor in built:
+                entries[f"{scene_id:04d}"] = _write_scene(
+                    tmp, scene, rsensor, seed, scene_calib, bar, rows, scan_frames
+                )
+    manifest = dict(ident)
+    manifest["scene_stats"] = entries
+    manifest["categories"] = list(CATEGORIES)
+    # Written last: a directory with a manifest is complete.
+    (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+
+
+def generate_world(
+    out_dir: str | Path,
+    preset: str = "small",
+    sensor: str = "hdl64",
+    seed: int = 0,
+    labels_dir: str | Path | None = None,
+    *,
+    progress: bool | None = None,
+    overwrite: bool = False,
+    scan_frames: int | None = None,
+    scenes: tuple[int, ...] | None = None,
+) -> Path:
+    """Generate a world into ``out_dir`` (atomically) and return ``out_dir``.
+
+    Args:
+        out_dir: final directory. When it already holds a world with the same manifest identity
+            it is reused as is; another non-empty directory raises ``FileExistsError`` unless
+            ``overwrite``.
+        preset: ``"tiny"``, ``"small"`` or ``"default"`` (see :data:`PRESETS`).
+        sensor: ``"hdl64"`` (KITTI-like) or ``"hdl32"`` (nuScenes-like).
+        seed: non-negative integer; the same seed gives byte-identical files.
+        labels_dir: a KITTI ``label_02`` + ``calib`` folder: replay its labelled objects (real
+            categories, sizes, trajectories) in a generated street and write exactly its labels.
+            ``preset`` then only picks the sensor resolution (``tiny`` halves it).
+        progress: show a tqdm bar (``None``: only on a terminal).
+        overwrite: replace a non-matching existing directory.
+        scan_frames: replay only: simulate scans for the first ``scan_frames`` frames of each
+            scene (labels stay complete) — for quick checks.
+        scenes: replay only: the scene numbers to replay (default: every label file).
+
+    Raises:
+        ValueError: an invalid preset, sensor, seed or option (the message lists valid values).
+    """
+    p = get_preset(preset)
+    sensor_model = get_sensor(sensor)
+    if p.column_factor > 1:
+        sensor_model = sensor_model.subsampled(p.column_factor)
+    seed = _check_seed(seed)
+    labels_path = None if labels_dir is None else Path(labels_dir)
+    ident = world_identity(preset, sensor, seed, labels_path, scan_frames, scenes)
+    out = Path(out_dir)
+    if out.exists():
+        if _matches(out, ident):
+            return out
+        if any(out.iterdir()):
+            if not overwrite:
+                raise FileExistsError(
+                    f"{out} exists and is not this world (preset={preset}, sensor={sensor}, "
+                    f"seed={seed}); choose another --out or overwrite"
+                )
+        _remove_tree(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    _clean_stale_temps(out)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        _generate_into(
+            tmp, ident, p, sensor_model, seed, labels_path, progress, scan_frames, scenes
+        )
+        try:
+            os.rename(tmp, out)
+        except OSError:
+            # Someone else finished the same world first: keep theirs if it is complete.
+            if _matches(out, ident):
+                _remove_tree(tmp)
+                return out
+            raise
+    except BaseException:
+        _remove_tree(tmp)
+        raise
+    return out
+
+
+def _clean_stale_temps(out: Path, min_age_s: float = 600.0) -> None:
+    """Remove temp directories of ``out`` left by killed runs (``SIGKILL`` skips our cleanup):
+    those whose process is gone and that have not changed for ``min_age_s`` seconds."""
+    import time
+
+    for tmp in out.parent.glob(f".{out.name}.tmp-*"):
+        try:
+            pid = int(tmp.name.rsplit(".tmp-", 1)[1].split("-")[0])
+            if time.time() - tmp.stat().st_mtime < min_age_s:
+                continue
+            os.kill(pid, 0)  # raises if no such process
+        except ProcessLookupError:
+            _remove_tree(tmp)
+        except (ValueError, IndexError, OSError):
+            continue
+
+
+def _remove_tree(path: Path) -> None:
+    if path.exists():
+        # Rename first so a half-deleted tree never sits under a name someone may read.
+        trash = path.parent / f".{path.name}.trash-{uuid.uuid4().hex[:8]}"
+        try:
+            os.rename(path, trash)
+        except OSError:
+            trash = path
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+def ensure_world(
+    preset: str = "small",
+    sensor: str = "hdl64",
+    seed: int = 0,
+    labels_dir: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    *,
+    progress: bool | None = None,
+) -> Path:
+    """The root of the world ``(preset, sensor, seed[, labels_dir])``, generated into the cache
+    on first use and reused afterwards.
+
+    The cache directory is ``cache_dir``, else ``$POINTTRACK_CACHE``, else the user cache dir of
+    ``pointtrack`` (``platformdirs``). Each world lives in ``<cache>/worlds/<preset>-<sensor>-
+    s<seed>-<hash>``; the hash covers the manifest identity (generator version, config, label
+    digest), so a changed generator or config never reuses an old directory.
+    """
+    ident = world_identity(preset, sensor, seed, labels_dir)
+    digest = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:12]
+    base = Path(cache_dir) if cache_dir is not None else default_cache_dir()
+    tag = "" if labels_dir is None else "replay-"
+    out = base / "worlds" / f"{tag}{preset}-{sensor}-s{int(seed)}-{digest}"
+    if _matches(out, ident):
+        return out
+    return generate_world(out, preset, sensor, seed, labels_dir, progress=progress, overwrite=True)
