@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from envs.geometry import points_in_box, world_to_box
-
 TEMPLATE_SIZE = 512
 SEARCH_SIZE = 1024
 TEMPLATE_SCALE = 1.25
@@ -20,9 +18,32 @@ def crop_box_frame(
 ) -> np.ndarray:
     """Points ``(N, C)`` inside ``box`` ``(7,)`` enlarged by ``scale`` and ``offset_m``, expressed
     in the box-local frame -> ``(M, C)`` float32 (extra columns such as intensity pass through).
+
+    Same result, bit for bit, as ``world_to_box(points[points_in_box(points, box, scale,
+    offset_m)], box)``, computed column by column in one pass (several times faster).
     """
-    mask = points_in_box(points[:, :3], box, scale=scale, offset_m=offset_m)
-    return world_to_box(points[mask], box).astype(np.float32, copy=False)
+    pts = np.asarray(points)
+    box = np.asarray(box, dtype=np.float64)
+    dtype = pts.dtype if np.issubdtype(pts.dtype, np.floating) else np.float64
+    # the same float64 arithmetic as world_to_box, then its cast, then points_in_box's test
+    c = np.cos(box[..., 6])[..., None]
+    s = np.sin(box[..., 6])[..., None]
+    dx = pts[:, 0] - box[0:1]
+    dy = pts[:, 1] - box[1:2]
+    lx = (c * dx + s * dy).astype(dtype, copy=False)
+    ly = (-s * dx + c * dy).astype(dtype, copy=False)
+    lz = (pts[:, 2] - box[2:3]).astype(dtype, copy=False)
+    half = box[3:6] * (0.5 * scale) + offset_m
+    mask = np.abs(lx) <= half[0]
+    mask &= np.abs(ly) <= half[1]
+    mask &= np.abs(lz) <= half[2]
+    out = np.empty((int(np.count_nonzero(mask)), pts.shape[1]), dtype=dtype)
+    out[:, 0] = lx[mask]
+    out[:, 1] = ly[mask]
+    out[:, 2] = lz[mask]
+    if pts.shape[1] > 3:
+        out[:, 3:] = pts[mask, 3:]
+    return out.astype(np.float32, copy=False)
 
 
 def resample(points: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, int]:
@@ -38,4 +59,4 @@ def resample(points: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.n
         idx = rng.choice(m, size=n, replace=False)
     else:
         idx = np.concatenate([np.arange(m), rng.integers(0, m, size=n - m)])
-    return np.ascontiguousarray(points[idx], dtype=np.float32), m
+    return np.take(points, idx, axis=0).astype(np.float32, copy=False), m

@@ -1,0 +1,374 @@
+"""Step-wise evaluation of any tracker in the environment: OPE Success / Precision.
+
+:func:`evaluate` runs every tracklet of an env once (sequentially, or spread over the sub-envs
+of a Gymnasium vector env so a batched tracker acts on ``(B, ...)`` observations), pools the
+frames per category with each tracklet's first frame counted perfect (``envs.metrics``), and
+returns a report. :func:`format_table`, :func:`save_report` and :func:`plot_curves` print it,
+write it as JSON, and draw the success / precision curves as PNG.
+
+Report (a JSON-able dict)::
+
+    {"tracker": name, "categories": {cat: {"success", "precision", "frames", "tracklets",
+     "observed", "success_curve", "precision_curve"}}, "observed": {...}, "unseen": {...},
+     "mean": {...}, "tracker_fps": frames per second spent in act(), "frames": int,
+     "tracklets": int, "wall_s": float, "env": {...}, "per_tracklet": [{...}, ...]}
+
+Success / precision are percent; a group without frames scores NaN (``null`` in JSON).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from envs.metrics import THRESHOLDS_IOU, THRESHOLDS_M, OPEAccumulator
+
+__all__ = [
+    "evaluate",
+    "format_table",
+    "load_tracker",
+    "plot_curves",
+    "save_report",
+    "split_tracklets",
+]
+
+
+def load_tracker(name_or_path: str) -> Any:
+    """A tracker by name or checkpoint path through ``trackers.load`` (baselines as a fallback
+    while ``trackers.load`` is unavailable)."""
+    try:
+        import trackers
+
+        load = getattr(trackers, "load", None)
+    except ImportError:  # pragma: no cover - trackers always importable in this repo
+        load = None
+    if load is not None:
+        return load(name_or_path)
+    from trackers.baselines import BASELINES
+
+    if name_or_path in BASELINES:
+        return BASELINES[name_or_path]()
+    raise ValueError(
+        f"cannot load tracker {name_or_path!r}: trackers.load is not available yet; "
+        f"baselines: {', '.join(BASELINES)}"
+    )
+
+
+def _tracker_name(tracker: Any, name: str | None) -> str:
+    if name:
+        return name
+    return str(getattr(tracker, "name", None) or type(tracker).__name__)
+
+
+def split_tracklets(lengths: Sequence[int], num_envs: int) -> list[list[int]]:
+    """Spread tracklet indices over ``num_envs`` sub-envs so their step counts are balanced
+    (longest first, each to the least-loaded sub-env). Sub-envs left empty get ``[]``."""
+    loads = [0] * num_envs
+    orders: list[list[int]] = [[] for _ in range(num_envs)]
+    for i in sorted(range(len(lengths)), key=lambda k: (-lengths[k], k)):
+        j = min(range(num_envs), key=lambda e: (loads[e], e))
+        orders[j].append(i)
+        loads[j] += max(int(lengths[i]) - 1, 0)
+    return [sorted(o) for o in orders]
+
+
+def _progress(total: int, enabled: bool | Callable, desc: str):
+    if callable(enabled):
+        return enabled(total=total, desc=desc)
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="frame", leave=False, dynamic_ncols=True)
+
+
+def evaluate(
+    tracker: Any,
+    env: gym.Env | gym.vector.VectorEnv,
+    *,
+    seed: int = 0,
+    tracklets: Sequence[int] | None = None,
+    name: str | None = None,
+    progress: bool | Callable = False,
+    out_dir: str | Path | None = None,
+    num_envs: int = 1,
+) -> dict[str, Any]:
+    """Run ``tracker`` over every tracklet of ``env`` once and report OPE Success / Precision.
+
+    Args:
+        tracker: anything with ``act(obs) -> (4,)`` (or ``(B, 4)`` for a batch).
+        env: a :class:`~envs.tracking_env.TrackingEnv`, possibly wrapped (``act`` sees the
+            wrapped observations; actions are passed through the wrappers), or a Gymnasium vector
+            env of them (``NEXT_STEP`` autoreset, the default): the tracklets are spread over the
+            sub-envs and ``act`` gets ``(B, ...)`` batches.
+        seed: seed of the first reset (the resampling of point sets).
+        tracklets: indices of the tracklets to run (default: all).
+        name: the tracker's name in the report (default: ``tracker.name`` or its class).
+        progress: show a tqdm progress bar (or pass a tqdm-like factory).
+        out_dir: if given, write ``<name>.json`` and curve plots there.
+        num_envs: with an unwrapped ``TrackingEnv`` and ``num_envs > 1``, run a
+            ``SyncVectorEnv`` of ``num_envs`` clones of it (shared data) so ``act`` gets batches.
+
+    Returns:
+        The report described in the module docstring. ``act`` is called once per step;
+        ``tracker_fps`` counts only the time spent inside ``act``.
+    """
+    name = _tracker_name(tracker, name)
+    start = time.perf_counter()
+    owned = None
+    if num_envs > 1 and not isinstance(env, gym.vector.VectorEnv):
+        if env is not env.unwrapped or not hasattr(env, "clone"):
+            raise ValueError(
+                "num_envs > 1 needs an unwrapped TrackingEnv; for wrapped envs pass a vector env"
+            )
+        owned = env = gym.vector.SyncVectorEnv([env.clone for _ in range(num_envs)])
+    if isinstance(env, gym.vector.VectorEnv):
+        acc, frames, act_s, env_info = _run_vector(tracker, env, seed, tracklets, progress, name)
+    else:
+        acc, frames, act_s, env_info = _run_single(tracker, env, seed, tracklets, progress, name)
+    if owned is not None:
+        owned.close()
+    report: dict[str, Any] = {"tracker": name}
+    report.update(acc.report(curves=True))
+    report["tracker_fps"] = frames / act_s if act_s > 0 else float("inf")
+    report["frames"] = int(report["mean"]["frames"])
+    report["tracklets"] = len(acc)
+    report["wall_s"] = time.perf_counter() - start
+    report["env"] = env_info
+    report["per_tracklet"] = [
+        {
+            "tracklet": r.tracklet_id,
+            "category": r.category,
+            "observed": r.observed,
+            "frames": r.frames,
+            "success": r.success,
+            "precision": r.precision,
+        }
+        for r in acc.results
+    ]
+    if out_dir is not None:
+        out = Path(out_dir)
+        save_report(report, out / f"{_slug(name)}.json")
+        plot_curves({name: report}, out, prefix=f"{_slug(name)}_")
+    return report
+
+
+def _env_info(u: Any) -> dict[str, Any]:
+    setting = getattr(u, "setting", None)
+    return {
+        "num_tracklets": int(u.num_tracklets),
+        "setting": getattr(setting, "name", None),
+        "split": getattr(u, "split", None),
+        "template_mode": getattr(u, "template_mode", None),
+        "reference": getattr(u, "reference", None),
+    }
+
+
+def _run_single(tracker, env, seed, tracklets, progress, name):
+    u = env.unwrapped
+    indices = list(range(u.num_tracklets)) if tracklets is None else [int(i) for i in tracklets]
+    lengths = u.tracklet_lengths
+    bar = _progress(sum(lengths[i] for i in indices), progress, name)
+    acc = OPEAccumulator()
+    frames, act_s = 0, 0.0
+    for k, index in enumerate(indices):
+        obs, info = env.reset(seed=seed if k == 0 else None, options={"tracklet": index})
+        tracklet_id, category, observed = info["tracklet"], info["category"], info["observed"]
+        ious: list[float] = []
+        errors: list[float] = []
+        while True:
+            t0 = time.perf_counter()
+            action = tracker.act(obs)
+            act_s += time.perf_counter() - t0
+            obs, _, terminated, truncated, info = env.step(action)
+            ious.append(info["iou"])
+            errors.append(info["center_error"])
+            if terminated or truncated:
+                break
+        frames += len(ious)
+        acc.add(tracklet_id, category, observed, ious, errors)
+        if bar is not None:
+            bar.update(len(ious) + 1)
+    if bar is not None:
+        bar.close()
+    return acc, frames, act_s, _env_info(u)
+
+
+def _run_vector(tracker, vec, seed, tracklets, progress, name):
+    mode = vec.metadata.get("autoreset_mode", gym.vector.AutoresetMode.NEXT_STEP)
+    if str(getattr(mode, "value", mode)) != gym.vector.AutoresetMode.NEXT_STEP.value:
+        raise ValueError(f"evaluate needs a vector env with NEXT_STEP autoreset; got {mode}")
+    num = vec.num_envs
+    lengths = vec.get_attr("tracklet_lengths")[0]
+    indices = list(range(len(lengths))) if tracklets is None else [int(i) for i in tracklets]
+    sub = split_tracklets([lengths[i] for i in indices], num)
+    orders = [[indices[i] for i in o] for o in sub]
+    remaining = np.array([len(o) for o in orders])
+    # a sub-env with nothing to do still needs a valid order; its episodes are ignored
+    vec.set_attr("tracklet_order", [o if o else [indices[0]] for o in orders])
+    bar = _progress(sum(lengths[i] for i in indices), progress, name)
+    acc = OPEAccumulator()
+    frames, act_s = 0, 0.0
+    active = remaining > 0
+    resetting = np.zeros(num, dtype=bool)  # the sub-env autoresets during this step
+    ious: list[list[float]] = [[] for _ in range(num)]
+    errors: list[list[float]] = [[] for _ in range(num)]
+    obs, infos = vec.reset(seed=seed)
+    meta = [
+        (infos["tracklet"][i], infos["category"][i], bool(infos["observed"][i])) for i in range(num)
+    ]
+    while active.any():
+        t0 = time.perf_counter()
+        actions = np.asarray(tracker.act(obs), dtype=np.float32).reshape(num, -1)
+        act_s += time.perf_counter() - t0
+        frames += int((active & ~resetting).sum())
+        obs, _, term, trunc, infos = vec.step(actions)
+        for i in range(num):
+            if resetting[i]:  # this step was the sub-env's reset: a new tracklet starts
+                resetting[i] = False
+                meta[i] = (infos["tracklet"][i], infos["category"][i], bool(infos["observed"][i]))
+                continue
+            if not active[i]:
+                resetting[i] = bool(term[i] or trunc[i])
+                continue
+            ious[i].append(float(infos["iou"][i]))
+            errors[i].append(float(infos["center_error"][i]))
+            if term[i] or trunc[i]:
+                acc.add(meta[i][0], meta[i][1], meta[i][2], ious[i], errors[i])
+                if bar is not None:
+                    bar.update(len(ious[i]) + 1)
+                ious[i], errors[i] = [], []
+                remaining[i] -= 1
+                active[i] = remaining[i] > 0
+                resetting[i] = True
+    if bar is not None:
+        bar.close()
+    info = {
+        "num_tracklets": len(lengths),
+        "setting": getattr(vec.get_attr("setting")[0], "name", None),
+        "split": vec.get_attr("split")[0],
+        "template_mode": vec.get_attr("template_mode")[0],
+        "reference": vec.get_attr("reference")[0],
+        "num_envs": num,
+    }
+    return acc, frames, act_s, info
+
+
+# --------------------------------------------------------------------------- output
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def _fmt(x: float) -> str:
+    return "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:5.1f}"
+
+
+def format_table(reports: Mapping[str, Mapping[str, Any]] | Sequence[Mapping[str, Any]]) -> str:
+    """A plain-text table: one row per report, ``Success / Precision`` per category (unseen
+    ones marked ``*``), then the observed, unseen and frame-weighted mean groups, frames and the
+    tracker's frames/s."""
+    if not isinstance(reports, Mapping):
+        reports = {r.get("tracker", f"#{i}"): r for i, r in enumerate(reports)}
+    cats: list[str] = []
+    unseen: set[str] = set()
+    for r in reports.values():
+        for c, e in r["categories"].items():
+            if c not in cats:
+                cats.append(c)
+            if not e["observed"]:
+                unseen.add(c)
+    cols = [c + ("*" if c in unseen else "") for c in cats] + ["observed", "unseen", "mean"]
+    width = max(13, *(len(c) for c in cols))
+    namew = max(12, *(len(n) for n in reports))
+    head = f"{'tracker':<{namew}} | " + " | ".join(f"{c:^{width}}" for c in cols)
+    head += " | frames |   fps"
+    sub = (
+        f"{'':<{namew}} | " + " | ".join(f"{'Succ / Prec':^{width}}" for _ in cols) + " |        |"
+    )
+    lines = [head, sub, "-" * len(head)]
+    for n, r in reports.items():
+        entries = [r["categories"].get(c) for c in cats] + [r["observed"], r["unseen"], r["mean"]]
+        cells = []
+        for e in entries:
+            txt = "-" if e is None else f"{_fmt(e['success'])} / {_fmt(e['precision'])}"
+            cells.append(f"{txt:^{width}}")
+        fps = r.get("tracker_fps", float("nan"))
+        fps_txt = "  inf" if fps == float("inf") else f"{fps:5.0f}"
+        lines.append(
+            f"{n:<{namew}} | " + " | ".join(cells) + f" | {r['mean']['frames']:6d} | {fps_txt}"
+        )
+    if unseen:
+        lines.append("* unseen category (not in the setting's observed categories)")
+    return "\n".join(lines)
+
+
+def _json_safe(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _json_safe(x.tolist())
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def save_report(report: Mapping[str, Any], path: str | Path) -> Path:
+    """Write a report (or ``{name: report}``) as JSON (NaN / inf -> ``null``); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_json_safe(dict(report)), indent=2) + "\n")
+    return path
+
+
+def plot_curves(
+    reports: Mapping[str, Mapping[str, Any]], out_dir: str | Path, prefix: str = ""
+) -> list[Path]:
+    """Draw ``<prefix>success.png`` and ``<prefix>precision.png`` in ``out_dir``: one panel per
+    group (mean, observed, unseen) with one curve per tracker; returns the paths."""
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    groups = [
+        g for g in ("mean", "observed", "unseen") if any(r[g]["frames"] for r in reports.values())
+    ]
+    for key, xs, xlabel, ylabel in (
+        ("success", THRESHOLDS_IOU, "overlap threshold (3D IoU)", "success rate"),
+        ("precision", THRESHOLDS_M, "centre error threshold (m)", "precision"),
+    ):
+        fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.6), squeeze=False)
+        for ax, g in zip(axes[0], groups, strict=True):
+            for n, r in reports.items():
+                e = r[g]
+                if not e["frames"] or f"{key}_curve" not in e:
+                    continue
+                ax.plot(xs, e[f"{key}_curve"], label=f"{n} [{e[key]:.1f}]")
+            ax.set_title(f"{key.capitalize()} — {g}")
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(ylabel)
+            ax.set_ylim(0, 1.02)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = out / f"{prefix}{key}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths
