@@ -1,0 +1,149 @@
+"""Tracker benchmark: parameters, forward time at batch 1 and 32, frames/s, a training step, and
+farthest-point sampling / ball query against naive references.
+
+    python benchmarks/bench_trackers.py [--quick] [--threads 2] [--device cpu|cuda]
+
+Inputs are synthetic (``trackers.toy.toy_batch``: a box-shaped target on a ground plane, the
+contract's 512 / 1024 points). Forward times are eval mode under ``torch.inference_mode``;
+"act" adds observation validation and the numpy round trip. The machine's load average is
+printed because other processes share the CPU; "CPU" is this process's CPU time per call (all
+threads), which contention inflates far less than wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import trackers  # noqa: E402
+from trackers import ops  # noqa: E402
+from trackers.toy import toy_batch  # noqa: E402
+
+CPU_TIMES: list[float] = []
+
+
+def timeit(fn, reps: int, warmup: int = 1, sync=lambda: None) -> float:
+    """Median wall seconds per call (the median process CPU seconds go to ``CPU_TIMES``)."""
+    for _ in range(warmup):
+        fn()
+    sync()
+    times, cpu = [], []
+    for _ in range(reps):
+        t, c = time.perf_counter(), time.process_time()
+        fn()
+        sync()
+        times.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
+    times.sort()
+    cpu.sort()
+    CPU_TIMES.append(cpu[len(cpu) // 2])
+    return times[len(times) // 2]
+
+
+def naive_fps(xyz: torch.Tensor, n: int) -> torch.Tensor:
+    """Reference FPS: one batch row at a time, one point at a time."""
+    out = []
+    for row in xyz:
+        chosen = [0]
+        mind = torch.full((row.shape[0],), float("inf"))
+        for _ in range(n - 1):
+            mind = torch.minimum(mind, (row - row[chosen[-1]]).square().sum(-1))
+            chosen.append(int(mind.argmax()))
+        out.append(chosen)
+    return torch.tensor(out)
+
+
+def naive_ball_query(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor):
+    """Reference ball query: one centre at a time."""
+    out = torch.zeros(*centres.shape[:2], k, dtype=torch.long)
+    for b in range(xyz.shape[0]):
+        for m in range(centres.shape[1]):
+            hits = torch.nonzero((xyz[b] - centres[b, m]).square().sum(-1) < radius * radius)[:, 0]
+            hits = hits[:k]
+            if len(hits):
+                out[b, m] = hits[0]
+                out[b, m, : len(hits)] = hits
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repetitions, batch 8 not 32")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt"])
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    reps = 3 if args.quick else 10
+    big = 8 if args.quick else 32
+    print(f"torch {torch.__version__}, device {device}, threads {torch.get_num_threads()}, "
+          f"load average {os.getloadavg()[0]:.2f}")
+
+    results = {}
+    for name in args.trackers:
+        torch.manual_seed(0)
+        model = trackers.make(name).to(device).eval()
+        params = sum(p.numel() for p in model.parameters())
+        row = {"params": params}
+        for bsz in (1, big):
+            batch, _ = toy_batch(bsz, seed=1)
+            batch = {k: v.to(device) for k, v in batch.items()}
+            with torch.inference_mode():
+                dt = timeit(lambda b=batch, m=model: m(b), reps, sync=sync)
+            row[f"ms_b{bsz}"] = dt * 1e3
+            row[f"cpu_ms_b{bsz}"] = CPU_TIMES[-1] * 1e3
+            row[f"fps_b{bsz}"] = bsz / dt
+        obs = {k: v[0].numpy() for k, v in toy_batch(1, seed=2)[0].items()}
+        row["act_ms"] = timeit(lambda o=obs, m=model: m.act(o), reps) * 1e3
+        batch, targets = toy_batch(8, seed=3)
+        batch = {k: v.to(device) for k, v in batch.items()}
+        targets = {k: v.to(device) for k, v in targets.items()}
+        model.train()
+
+        def step(m=model, b=batch, t=targets):
+            m.zero_grad(set_to_none=True)
+            m.loss(m(b), t)["total"].mean().backward()
+
+        row["train_ms_b8"] = timeit(step, max(1, reps // 3), sync=sync) * 1e3
+        results[name] = row
+        print(f"{name:4s} params {params / 1e6:.2f} M | batch 1: {row['ms_b1']:7.1f} ms "
+              f"(CPU {row['cpu_ms_b1']:6.1f} ms, {row['fps_b1']:5.1f} frames/s) | "
+              f"batch {big}: {row[f'ms_b{big}']:8.1f} ms "
+              f"({row[f'fps_b{big}']:6.1f} frames/s) | act(1 obs) {row['act_ms']:6.1f} ms | "
+              f"train step b8 {row['train_ms_b8']:7.1f} ms")
+    if "p2b" in results:
+        base = results["p2b"]["fps_b1"]
+        print("frames/s at batch 1 relative to P2B: "
+              + ", ".join(f"{n} {r['fps_b1'] / base:.2f}x" for n, r in results.items()))
+
+    g = torch.Generator().manual_seed(0)
+    xyz = torch.rand(8, 1024, 3, generator=g) * torch.tensor([9.0, 6.0, 3.0])
+    centres = xyz[:, :512]
+    for bsz in (1, 8):
+        x, c = xyz[:bsz], centres[:bsz]
+        fast_idx, naive_idx = ops.farthest_point_sample(x, 512), naive_fps(x, 512)
+        assert torch.equal(fast_idx, naive_idx)
+        t_fast = timeit(lambda x=x: ops.farthest_point_sample(x, 512), reps)
+        t_naive = timeit(lambda x=x: naive_fps(x, 512), 1, warmup=0)
+        print(f"FPS 1024->512, batch {bsz}: {t_fast * 1e3:.1f} ms (naive per-row loop "
+              f"{t_naive * 1e3:.1f} ms, {t_naive / t_fast:.1f}x)")
+        assert torch.equal(ops.ball_query(0.3, 32, x, c), naive_ball_query(0.3, 32, x, c))
+        t_fast = timeit(lambda x=x, c=c: ops.ball_query(0.3, 32, x, c), reps)
+        t_naive = timeit(lambda x=x, c=c: naive_ball_query(0.3, 32, x, c), 1, warmup=0)
+        print(f"ball query 512 centres x 1024 points (r 0.3, k 32), batch {bsz}: "
+              f"{t_fast * 1e3:.2f} ms (naive per-centre loop {t_naive * 1e3:.1f} ms, "
+              f"{t_naive / t_fast:.0f}x)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

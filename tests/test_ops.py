@@ -1,0 +1,167 @@
+"""trackers.ops against brute-force references (Python loops / numpy, float64)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from trackers import ops
+
+
+def _points(b=2, n=300, seed=0, scale=1.0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(b, n, 3, generator=g) * scale
+
+
+def _ball_query_ref(radius, k, xyz, centres):
+    xyz, centres = xyz.double().numpy(), centres.double().numpy()
+    b, m = centres.shape[:2]
+    out = np.zeros((b, m, k), np.int64)
+    for bi in range(b):
+        for mi in range(m):
+            hits = [j for j in range(xyz.shape[1])
+                    if ((xyz[bi, j] - centres[bi, mi]) ** 2).sum() < radius * radius]
+            hits = hits[:k]
+            row = hits + [hits[0] if hits else 0] * (k - len(hits))
+            out[bi, mi] = row
+    return out
+
+
+def _near_boundary(radius, xyz, centres, tol=1e-5):
+    c, p = centres.double().numpy(), xyz.double().numpy()
+    d = np.sqrt(((c[:, :, None] - p[:, None]) ** 2).sum(-1))
+    return np.abs(d - radius).min() < tol
+
+
+@pytest.mark.parametrize("radius,k", [(0.15, 8), (0.3, 32), (0.05, 4)])
+def test_ball_query_matches_brute_force(radius, k):
+    xyz = _points(n=200, seed=1)
+    centres = torch.cat([xyz[:, :40], torch.full((2, 2, 3), 5.0)], dim=1)  # 2 centres with no hit
+    assert not _near_boundary(radius, xyz, centres)
+    idx, count = ops.ball_query(radius, k, xyz, centres, return_count=True)
+    ref = _ball_query_ref(radius, k, xyz, centres)
+    np.testing.assert_array_equal(idx.numpy(), ref)
+    assert idx.dtype == torch.int64 and idx.shape == (2, 42, k)
+    assert (count[:, -2:] == 0).all() and (count[:, :40] >= 1).all()
+    assert (count <= k).all()
+
+
+def test_ball_query_fewer_points_than_k():
+    xyz = _points(n=5, seed=2)
+    idx = ops.ball_query(10.0, 8, xyz, xyz[:, :2])
+    np.testing.assert_array_equal(idx.numpy(), _ball_query_ref(10.0, 8, xyz, xyz[:, :2]))
+
+
+@pytest.mark.parametrize("dim", [3, 32])
+def test_knn_matches_brute_force(dim):
+    g = torch.Generator().manual_seed(3)
+    query, ref = torch.randn(2, 30, dim, generator=g), torch.randn(2, 50, dim, generator=g)
+    d, idx = ops.knn(7, query, ref)
+    dd = ((query.double()[:, :, None] - ref.double()[:, None]) ** 2).sum(-1).numpy()
+    ref_idx = np.argsort(dd, axis=-1, kind="stable")[..., :7]
+    np.testing.assert_array_equal(idx.numpy(), ref_idx)
+    np.testing.assert_allclose(d.numpy(), np.take_along_axis(dd, ref_idx, -1), rtol=1e-4, atol=1e-5)
+
+
+def test_knn_ties_lower_index_first_and_k_too_large():
+    ref = torch.zeros(1, 6, 3)
+    _, idx = ops.knn(3, torch.zeros(1, 1, 3), ref)
+    assert idx.tolist() == [[[0, 1, 2]]]
+    with pytest.raises(ValueError, match="exceeds"):
+        ops.knn(7, torch.zeros(1, 1, 3), ref)
+
+
+def test_pairwise_sqdist_and_gather_group():
+    a, b = _points(n=20, seed=4), _points(n=30, seed=5)
+    ref = ((a.double()[:, :, None] - b.double()[:, None]) ** 2).sum(-1)
+    np.testing.assert_allclose(ops.pairwise_sqdist(a, b).numpy(), ref.numpy(), atol=1e-6)
+    feats = torch.randn(2, 30, 64)
+    np.testing.assert_allclose(ops.pairwise_sqdist(torch.randn(2, 5, 64), feats).shape, (2, 5, 30))
+    idx = torch.randint(0, 30, (2, 7, 4))
+    grouped = ops.group(feats, idx)
+    assert grouped.shape == (2, 7, 4, 64)
+    for bi in range(2):
+        for m in range(7):
+            for j in range(4):
+                assert torch.equal(grouped[bi, m, j], feats[bi, idx[bi, m, j]])
+    assert torch.equal(ops.gather(feats, idx[:, :, 0]), grouped[:, :, 0])
+
+
+def _fps_ref(xyz, n):
+    xyz = xyz.double().numpy()
+    out = []
+    for row in xyz:
+        chosen = [0]
+        mind = np.full(len(row), np.inf)
+        for _ in range(n - 1):
+            mind = np.minimum(mind, ((row - row[chosen[-1]]) ** 2).sum(-1))
+            chosen.append(int(np.argmax(mind)))
+        out.append(chosen)
+    return np.array(out)
+
+
+def test_farthest_point_sample_matches_brute_force():
+    xyz = _points(n=150, seed=6)
+    idx = ops.farthest_point_sample(xyz, 32)
+    np.testing.assert_array_equal(idx.numpy(), _fps_ref(xyz, 32))
+    assert len(set(idx[0].tolist())) == 32
+    with pytest.raises(ValueError):
+        ops.farthest_point_sample(xyz, 151)
+
+
+def test_random_order_and_sample():
+    g1, g2 = torch.Generator().manual_seed(7), torch.Generator().manual_seed(7)
+    o1, o2 = ops.random_order(3, 100, g1), ops.random_order(3, 100, g2)
+    assert torch.equal(o1, o2)
+    assert torch.equal(o1.sort(1).values, torch.arange(100).expand(3, 100))
+    s = ops.random_sample(_points(n=50), 20, torch.Generator().manual_seed(1))
+    assert s.shape == (2, 20) and all(len(set(r.tolist())) == 20 for r in s)
+    with pytest.raises(ValueError):
+        ops.random_sample(_points(n=5), 6)
+
+
+def test_hash_order_is_invariant_to_input_order():
+    xyz = _points(b=2, n=256, seed=8, scale=4.0)
+    xyz[:, 100:110] = xyz[:, :10]  # exact duplicates are allowed
+    perm = torch.randperm(256, generator=torch.Generator().manual_seed(9))
+    a = ops.gather(xyz, ops.hash_order(xyz, seed=3))
+    b = ops.gather(xyz[:, perm], ops.hash_order(xyz[:, perm], seed=3))
+    assert torch.equal(a, b)
+    other = ops.gather(xyz, ops.hash_order(xyz, seed=4))
+    assert not torch.equal(a, other)  # the seed changes the sample
+    # a prefix is a roughly uniform sample: neither the first nor the last points by index
+    first_half = ops.hash_order(xyz, seed=3)[:, :128]
+    assert 30 < (first_half < 128).sum(1).float().mean() < 98
+
+
+def test_mul32_exact():
+    g = torch.Generator().manual_seed(0)
+    h = torch.randint(0, 2**32, (500,), dtype=torch.long, generator=g)
+    c = 0x85EBCA6B
+    ref = torch.tensor([(int(x) * c) % 2**32 for x in h])
+    assert torch.equal(ops._mul32(h, c), ref)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no GPU")
+def test_ops_cpu_equals_gpu():  # pragma: no cover - GPU machines only
+    xyz = _points(n=500, seed=10)
+    centres = xyz[:, :100]
+    assert torch.equal(ops.ball_query(0.2, 16, xyz, centres),
+                       ops.ball_query(0.2, 16, xyz.cuda(), centres.cuda()).cpu())
+    assert torch.equal(ops.hash_order(xyz), ops.hash_order(xyz.cuda()).cpu())
+    assert torch.equal(ops.knn(8, centres, xyz)[1], ops.knn(8, centres.cuda(), xyz.cuda())[1].cpu())
+    assert torch.equal(ops.farthest_point_sample(xyz, 50),
+                       ops.farthest_point_sample(xyz.cuda(), 50).cpu())
+
+
+def test_hash_order_spreads_duplicates_like_a_random_permutation():
+    """Padded clouds (few points, many copies): a prefix keeps as many distinct points as a
+    random permutation's prefix would, and stays order invariant."""
+    g = torch.Generator().manual_seed(11)
+    unique = torch.rand(1, 100, 3, generator=g) * 4
+    pts = torch.cat([unique, unique[:, torch.randint(0, 100, (412,), generator=g)]], dim=1)
+    prefix = ops.gather(pts, ops.hash_order(pts)[:, :64])[0]
+    assert torch.unique(prefix, dim=0).shape[0] >= 40  # a random prefix gives ~48 on average
+    perm = torch.randperm(512, generator=g)
+    assert torch.equal(prefix, ops.gather(pts[:, perm], ops.hash_order(pts[:, perm])[:, :64])[0])

@@ -1,0 +1,238 @@
+"""The common learned-tracker module: backbone -> fusion (per tracker) -> shared proposal head.
+
+Contract (INTERFACES.md "trackers"):
+
+* ``forward(batch, generator=None) -> dict``: ``batch`` holds ``template (B, 512, 3)``,
+  ``search (B, 1024, 3)``, ``size (B, 3)``, ``motion (B, 4)`` float tensors (template points in
+  their own box frame, search points in the reference-box frame). Outputs: ``Z (B, M_S, D)`` the
+  fused search features, ``proposals (B, P, 4)`` = ``(dx, dy, dz, dyaw)`` in the search frame
+  (radians), ``scores (B, P)`` objectness logits, ``votes (B, M_S, 3)``, ``seed_logits
+  (B, M_S)``, ``seed_xyz``, ``seed_idx (B, M_S)`` (indices into ``search``),
+  ``template_seed_xyz``, ``template_seed_idx (B, M_T)``, ``proposal_centers``, ``box_raw``, plus
+  tracker extras.
+* ``loss(outputs, targets) -> dict`` of per-sample ``(B,)`` terms and ``total`` (weighted sum).
+* ``act(obs) -> np.ndarray``: one observation -> ``(4,)``, a batch -> ``(B, 4)``; the best-scored
+  proposal, clipped to ``self.max_action`` (default the env's ``a_max = (5, 5, 3, pi)``); no move
+  for an all-zero (empty) template or search; one eval-mode ``no_grad`` forward per call (the
+  module's train/eval mode is restored afterwards).
+
+Sampling: in training mode the backbone keeps a random prefix of each cloud (a permutation from
+``generator``, default the module's own ``self.generator`` seeded by ``config.sampling_seed``); in
+eval mode a :func:`trackers.ops.hash_order` keyed by ``config.sampling_seed`` - deterministic, and
+the outputs do not depend on the order of the input points.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from torch import nn
+
+from trackers import ops
+from trackers.backbone import Backbone, BackboneConfig
+from trackers.config import config_from_dict, config_to_dict
+from trackers.head import HeadConfig, VotingHead, head_losses
+
+__all__ = ["DEFAULT_MAX_ACTION", "OBS_SHAPES", "Tracker", "TrackerConfig", "prepare_observation"]
+
+#: The env's default action bound ``a_max`` (metres, metres, metres, radians).
+DEFAULT_MAX_ACTION = (5.0, 5.0, 3.0, math.pi)
+
+#: Observation keys and their per-sample shapes (``envs.observation`` sizes).
+OBS_SHAPES: dict[str, tuple[int, ...]] = {
+    "template": (512, 3),
+    "search": (1024, 3),
+    "size": (3,),
+    "motion": (4,),
+}
+
+
+@dataclass
+class TrackerConfig:
+    """Hyper-parameters common to P2B, BAT and GPT."""
+
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    head: HeadConfig = field(default_factory=HeadConfig)
+    sampling_seed: int = 0
+    loss_weights: dict[str, float] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.loss_weights = {str(k): float(v) for k, v in self.loss_weights.items()}
+
+
+def prepare_observation(obs: Any, device: torch.device | str = "cpu"
+                        ) -> tuple[dict[str, torch.Tensor], bool]:
+    """Validate one observation or a batch -> (float32 tensors ``(B, ...)`` on ``device``,
+    ``single``). Raises ``KeyError``/``TypeError``/``ValueError`` naming the key and the expected
+    shape or dtype.
+    """
+    if not isinstance(obs, Mapping):
+        raise TypeError(f"observation must be a dict with keys {list(OBS_SHAPES)}, "
+                        f"got {type(obs).__name__}")
+    missing = [k for k in OBS_SHAPES if k not in obs]
+    if missing:
+        raise KeyError(f"observation is missing key(s) {missing}; expected {_expected()}")
+    out: dict[str, torch.Tensor] = {}
+    single: bool | None = None
+    batch: int | None = None
+    for key, shape in OBS_SHAPES.items():
+        value = obs[key]
+        if isinstance(value, torch.Tensor):
+            if not value.is_floating_point():
+                raise TypeError(f"observation[{key!r}] has dtype {value.dtype}; expected a float "
+                                f"tensor (float32) of shape {shape} or (B, *{shape})")
+            tensor = value.detach()
+        else:
+            arr = np.asarray(value)
+            if arr.dtype.kind != "f":
+                raise TypeError(f"observation[{key!r}] has dtype {arr.dtype}; expected float32 "
+                                f"of shape {shape} or (B, *{shape})")
+            tensor = torch.from_numpy(np.ascontiguousarray(arr))
+        if tuple(tensor.shape) == shape:
+            is_single = True
+        elif tensor.dim() == len(shape) + 1 and tuple(tensor.shape[1:]) == shape:
+            is_single = False
+        else:
+            raise ValueError(f"observation[{key!r}] has shape {tuple(tensor.shape)}; expected "
+                             f"{shape} or (B, *{shape})")
+        if single is None:
+            single = is_single
+        elif single != is_single:
+            raise ValueError(f"observation[{key!r}] has shape {tuple(tensor.shape)}: mixes single "
+                             f"and batched entries; expected {shape} for one observation")
+        tensor = tensor.unsqueeze(0) if is_single else tensor
+        if batch is None:
+            batch = tensor.shape[0]
+        elif tensor.shape[0] != batch:
+            raise ValueError(f"observation[{key!r}] has batch size {tensor.shape[0]}, other keys "
+                             f"have {batch}")
+        tensor = tensor.to(device=device, dtype=torch.float32)
+        if not torch.isfinite(tensor).all():
+            raise ValueError(f"observation[{key!r}] contains NaN or inf values")
+        out[key] = tensor
+    return out, bool(single)
+
+
+def _expected() -> str:
+    return ", ".join(f"{k} {s}" for k, s in OBS_SHAPES.items())
+
+
+class Tracker(nn.Module):
+    """Base of the learned trackers; subclasses set ``name``, ``config_class``, build
+    ``self.fusion`` in ``build_fusion`` and implement ``fuse`` (and optionally ``extra_losses``).
+    """
+
+    name: ClassVar[str] = "tracker"
+    config_class: ClassVar[type] = TrackerConfig
+    default_loss_weights: ClassVar[dict[str, float]] = {}
+
+    def __init__(self, config: Any = None, **overrides: Any) -> None:
+        super().__init__()
+        if config is None:
+            config = {}
+        if isinstance(config, self.config_class):
+            config = config_to_dict(config)
+        config = {**config, **overrides}
+        cfg = config_from_dict(self.config_class, config, where=f"{self.name} config")
+        unknown = sorted(set(cfg.loss_weights) - set(self.default_loss_weights))
+        if unknown:
+            raise ValueError(f"{self.name} config: unknown loss term(s) {unknown}; valid: "
+                             f"{sorted(self.default_loss_weights)}")
+        # given weights override the paper's; terms not given keep the paper's weight
+        cfg.loss_weights = {**self.default_loss_weights, **cfg.loss_weights}
+        self.config = cfg
+        self.backbone = Backbone(cfg.backbone)
+        self.build_fusion()
+        self.head = VotingHead(self.fused_channels, cfg.head)
+        self.generator = torch.Generator().manual_seed(int(cfg.sampling_seed))
+        self.max_action = np.asarray(DEFAULT_MAX_ACTION, dtype=np.float32)
+
+    # ------------------------------------------------------------------ hooks for subclasses
+    fused_channels: int = 256
+
+    def build_fusion(self) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def fuse(self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_xyz: torch.Tensor,
+             s_feat: torch.Tensor, batch: dict[str, torch.Tensor]
+             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # pragma: no cover - abstract
+        """-> ``Z (B, M_S, D)`` and extra outputs."""
+        raise NotImplementedError
+
+    def extra_losses(self, outputs: dict[str, torch.Tensor], targets: dict[str, torch.Tensor],
+                     seed_labels: torch.Tensor) -> dict[str, torch.Tensor]:
+        return {}
+
+    # ------------------------------------------------------------------ common machinery
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    def sampling_orders(self, template: torch.Tensor, search: torch.Tensor,
+                        generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Point orders for the backbone: random in training, hash-based in eval."""
+        if self.training:
+            gen = generator if generator is not None else self.generator
+            return (ops.random_order(template.shape[0], template.shape[1], gen, template.device),
+                    ops.random_order(search.shape[0], search.shape[1], gen, search.device))
+        seed = int(self.config.sampling_seed)
+        return ops.hash_order(template, seed), ops.hash_order(search, seed + 1)
+
+    def forward(self, batch: Mapping[str, torch.Tensor],
+                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        for key in ("template", "search"):
+            value = batch[key]
+            if value.dim() != 3 or value.shape[-1] != 3:
+                raise ValueError(f"batch[{key!r}] has shape {tuple(value.shape)}; expected "
+                                 f"(B, {OBS_SHAPES[key][0]}, 3)")
+        template, search = batch["template"], batch["search"]
+        order_t, order_s = self.sampling_orders(template, search, generator)
+        t_xyz, t_feat, t_idx = self.backbone(template, order_t)
+        s_xyz, s_feat, s_idx = self.backbone(search, order_s)
+        z, extra = self.fuse(t_xyz, t_feat, s_xyz, s_feat, dict(batch))
+        out = self.head(s_xyz, z)
+        out.update(Z=z, seed_xyz=s_xyz, seed_idx=s_idx, template_seed_xyz=t_xyz,
+                   template_seed_idx=t_idx, **extra)
+        return out
+
+    def loss(self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
+             ) -> dict[str, torch.Tensor]:
+        """Per-sample losses ``(B,)``: the named terms and their weighted ``total``."""
+        if "search_box" not in targets or "search_labels" not in targets:
+            raise KeyError("targets need 'search_box' (B, 7) and 'search_labels' (B, N_S)")
+        seed_labels = torch.gather(targets["search_labels"].float(), 1, outputs["seed_idx"])
+        terms = head_losses(outputs, targets["search_box"].float(), seed_labels,
+                            self.config.head)
+        terms.update(self.extra_losses(outputs, dict(targets), seed_labels))
+        weights = self.config.loss_weights
+        total = sum(weights[k] * terms[k] for k in weights)
+        return {"total": total, **terms}
+
+    @torch.no_grad()
+    def act(self, obs: Any) -> np.ndarray:
+        """Best proposal as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``."""
+        batch, single = prepare_observation(obs, self.device)
+        was_training = self.training
+        self.eval()
+        try:
+            out = self.forward(batch)
+        finally:
+            self.train(was_training)
+        best = out["scores"].argmax(dim=1)
+        action = out["proposals"][torch.arange(len(best), device=best.device), best]
+        empty = ((batch["template"] == 0).flatten(1).all(1)
+                 | (batch["search"] == 0).flatten(1).all(1))
+        action = torch.where(empty[:, None], torch.zeros_like(action), action)
+        action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
+        a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
+        action = torch.maximum(torch.minimum(action, a_max), -a_max)
+        result = action.cpu().numpy().astype(np.float32)
+        return result[0] if single else result
+
+    def extra_repr(self) -> str:
+        return f"name={self.name!r}"

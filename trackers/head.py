@@ -1,0 +1,139 @@
+"""The proposal head shared by P2B, BAT and GPT (P2B's VoteNet RPN) and its losses.
+
+From the fused search features ``Z (B, M, D)`` at the search seeds ``xyz (B, M, 3)``:
+
+* per-seed target score (logit) ``MLP [D, D, D, 1]``;
+* Hough voting ``MLP [3+D, D, D, 3+D]``: a vote ``[xyz; Z] + offset`` per seed;
+* proposals: the first ``num_proposals`` votes (seeds are in random order, so this is random
+  sampling of votes) are cluster centres; each clusters the votes within ``cluster_radius``
+  (ball query, ``cluster_votes`` slots); ``MLP [3+1+D, V, V, V]`` on ``[vote_xyz - centre;
+  sigmoid(score); vote_feature]``, max over the cluster, then ``MLP [V, V, V, 5]`` -> centre
+  offset (3), yaw, objectness logit.
+
+A proposal is ``(x, y, z, yaw)`` of the target box in the search (reference-box) frame, which is
+exactly the env's action ``(dx, dy, dz, dyaw)``. Internally the yaw output is in degrees by
+default (``yaw_unit="deg"``, as P2B's and Open3DSOT's regression targets, which sets the scale of
+the box loss); ``outputs["proposals"]`` is always in radians.
+
+Losses (per sample, ``(B,)``; Open3DSOT's definitions, normalised per sample instead of per batch):
+``vote`` smooth-L1 of vote xyz to the GT centre on target seeds; ``seed`` BCE of seed scores;
+``objectness`` BCE (``pos_weight`` 2) of proposal scores, positive when the cluster centre is
+within 0.3 m of the GT centre, negative beyond 0.6 m, ignored between; ``box`` smooth-L1 of
+``(x, y, z, yaw)`` to the GT box on positive proposals.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from trackers import ops
+from trackers.layers import MLP
+
+__all__ = ["HeadConfig", "VotingHead", "head_losses", "smooth_l1"]
+
+
+@dataclass
+class HeadConfig:
+    """Proposal-head hyper-parameters (defaults: P2B's)."""
+
+    vote_channels: int = 256
+    num_proposals: int = 64
+    cluster_radius: float = 0.3
+    cluster_votes: int = 16
+    yaw_unit: str = "deg"
+    positive_radius: float = 0.3
+    negative_radius: float = 0.6
+    objectness_pos_weight: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.yaw_unit not in ("deg", "rad"):
+            raise ValueError(f"head: yaw_unit must be 'deg' or 'rad', got {self.yaw_unit!r}")
+        if self.num_proposals < 1 or self.cluster_votes < 1 or self.cluster_radius <= 0:
+            raise ValueError("head: num_proposals, cluster_votes, cluster_radius must be positive")
+        if not 0 < self.positive_radius <= self.negative_radius:
+            raise ValueError("head: need 0 < positive_radius <= negative_radius")
+
+
+class VotingHead(nn.Module):
+    """``forward(xyz (B, M, 3), Z (B, M, D))`` -> dict of head outputs (see module doc)."""
+
+    def __init__(self, in_channels: int, config: HeadConfig | None = None) -> None:
+        super().__init__()
+        self.config = config = config or HeadConfig()
+        d, v = in_channels, config.vote_channels
+        self.cls = MLP([d, d, d, 1], last_activation=False)
+        self.vote = MLP([3 + d, d, d, 3 + d], last_activation=False)
+        self.aggregate = MLP([3 + 1 + d, v, v, v])
+        self.proposal = MLP([v, v, v, 5], last_activation=False)
+        self.yaw_scale = math.pi / 180.0 if config.yaw_unit == "deg" else 1.0
+
+    def forward(self, xyz: torch.Tensor, z: torch.Tensor) -> dict[str, torch.Tensor]:
+        m = xyz.shape[1]
+        n_prop = min(self.config.num_proposals, m)
+        seed_logits = self.cls(z).squeeze(-1)  # (B, M)
+        seed_feat = torch.cat([xyz, z], dim=-1)
+        vote = seed_feat + self.vote(seed_feat)  # (B, M, 3 + D)
+        vote_xyz, vote_feat = vote[..., :3], vote[..., 3:]
+        centres = vote_xyz[:, :n_prop]  # (B, P, 3)
+        idx = ops.ball_query(self.config.cluster_radius, self.config.cluster_votes,
+                             vote_xyz, centres)  # (B, P, k)
+        # first aggregation layer decomposed: per vote W [xyz; s; f] + b, per centre W_x c
+        w, b = self.aggregate.linear_params(0)
+        per_vote = F.linear(torch.cat([vote_xyz, torch.sigmoid(seed_logits)[..., None],
+                                       vote_feat], dim=-1), w, b)
+        per_centre = centres @ w[:, :3].t()
+        pre = ops.group(per_vote, idx) - per_centre[:, :, None, :]  # (B, P, k, V)
+        cluster = self.aggregate.forward_from(0, pre).amax(dim=2)  # (B, P, V)
+        raw = self.proposal(cluster)  # (B, P, 5)
+        box_raw = torch.cat([centres + raw[..., :3], raw[..., 3:4]], dim=-1)  # yaw in yaw_unit
+        proposals = torch.cat([box_raw[..., :3], box_raw[..., 3:4] * self.yaw_scale], dim=-1)
+        return {
+            "seed_logits": seed_logits,
+            "votes": vote_xyz,
+            "vote_features": vote_feat,
+            "proposal_centers": centres,
+            "box_raw": box_raw,
+            "proposals": proposals,
+            "scores": raw[..., 4],
+        }
+
+
+def smooth_l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Elementwise smooth-L1 (beta 1), averaged over the last dimension."""
+    return F.smooth_l1_loss(pred, target, reduction="none").mean(-1)
+
+
+def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-sample mean of ``values (B, ...)`` over ``mask`` -> ``(B,)``; 0 where mask is empty."""
+    dims = tuple(range(1, values.dim()))
+    return (values * mask).sum(dims) / (mask.sum(dims) + 1e-6)
+
+
+def head_losses(outputs: dict[str, torch.Tensor], search_box: torch.Tensor,
+                seed_labels: torch.Tensor, config: HeadConfig) -> dict[str, torch.Tensor]:
+    """Per-sample head losses ``(B,)``: ``vote``, ``seed``, ``objectness``, ``box``.
+
+    ``search_box (B, 7)`` GT box in the search frame, ``seed_labels (B, M)`` 0/1 at the seeds.
+    """
+    centre = search_box[:, None, :3]
+    yaw_scale = math.pi / 180.0 if config.yaw_unit == "deg" else 1.0
+    votes = outputs["votes"]
+    vote = masked_mean(smooth_l1(votes, centre.expand_as(votes)), seed_labels)
+    seed = F.binary_cross_entropy_with_logits(
+        outputs["seed_logits"], seed_labels, reduction="none").mean(-1)
+    dist = (outputs["proposal_centers"] - centre).square().sum(-1).add(1e-6).sqrt()  # (B, P)
+    positive = (dist < config.positive_radius).float()
+    counted = positive + (dist > config.negative_radius).float()
+    pos_weight = torch.tensor(config.objectness_pos_weight, device=dist.device, dtype=dist.dtype)
+    obj = F.binary_cross_entropy_with_logits(outputs["scores"], positive, reduction="none",
+                                             pos_weight=pos_weight)
+    objectness = masked_mean(obj, counted)
+    target = torch.cat([search_box[:, :3], search_box[:, 6:7] / yaw_scale], dim=-1)  # (B, 4)
+    box_raw = outputs["box_raw"]
+    box = masked_mean(smooth_l1(box_raw, target[:, None].expand_as(box_raw)), positive)
+    return {"vote": vote, "seed": seed, "objectness": objectness, "box": box}

@@ -1,0 +1,85 @@
+"""Shared pointwise MLP (the ``1x1`` convolutions of PointNet++ code) on channels-last tensors.
+
+``MLP([c0, c1, ..., cn])`` is ``n`` layers ``Linear -> BatchNorm -> ReLU``; with
+``last_activation=False`` the last layer is a plain ``Linear`` with bias (an output layer). Inputs
+are ``(..., c0)``; BatchNorm normalises over every leading position (as ``BatchNorm2d`` over
+``(B, C, M, k)`` does in the reference code).
+
+In eval mode each BatchNorm is folded into its Linear (one matmul, no extra pass) - the same
+function up to float rounding. The first layer can be evaluated separately
+(:meth:`MLP.linear_params` + :meth:`MLP.forward_from`) so callers can decompose it over the parts
+of a concatenated input (the linear-first-layer trick used by the set abstraction, the P2B fusion,
+the GPT edge convolution and the proposal aggregation).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+__all__ = ["MLP"]
+
+
+class MLP(nn.Module):
+    """Pointwise MLP ``(..., channels[0]) -> (..., channels[-1])``."""
+
+    def __init__(self, channels: Sequence[int], last_activation: bool = True) -> None:
+        super().__init__()
+        if len(channels) < 2:
+            raise ValueError(f"an MLP needs at least two channel sizes, got {list(channels)}")
+        self.channels = tuple(int(c) for c in channels)
+        n = len(self.channels) - 1
+        self.activated = tuple(i < n - 1 or last_activation for i in range(n))
+        self.linears = nn.ModuleList(
+            nn.Linear(self.channels[i], self.channels[i + 1], bias=not self.activated[i])
+            for i in range(n)
+        )
+        self.norms = nn.ModuleList(
+            nn.BatchNorm1d(self.channels[i + 1]) if self.activated[i] else nn.Identity()
+            for i in range(n)
+        )
+
+    @property
+    def in_channels(self) -> int:
+        return self.channels[0]
+
+    @property
+    def out_channels(self) -> int:
+        return self.channels[-1]
+
+    def linear_params(self, i: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Weight ``(c_out, c_in)`` and bias of layer ``i``; in eval mode with BatchNorm folded."""
+        lin = self.linears[i]
+        norm = self.norms[i]
+        if self.training or not isinstance(norm, nn.BatchNorm1d):
+            return lin.weight, lin.bias
+        scale = norm.weight * torch.rsqrt(norm.running_var + norm.eps)
+        shift = norm.bias - norm.running_mean * scale
+        if lin.bias is not None:
+            shift = shift + lin.bias * scale
+        return lin.weight * scale[:, None], shift
+
+    def finish(self, i: int, pre: torch.Tensor) -> torch.Tensor:
+        """BatchNorm (training mode only; folded otherwise) and ReLU of layer ``i``."""
+        if not self.activated[i]:
+            return pre
+        if self.training:
+            shape = pre.shape
+            pre = self.norms[i](pre.reshape(-1, shape[-1])).reshape(shape)
+            return F.relu(pre)
+        return F.relu(pre) if torch.is_grad_enabled() else F.relu_(pre)
+
+    def forward_from(self, i: int, pre: torch.Tensor) -> torch.Tensor:
+        """Continue from the pre-activation of layer ``i`` (its ``linear_params`` applied)."""
+        x = self.finish(i, pre)
+        for j in range(i + 1, len(self.linears)):
+            w, b = self.linear_params(j)
+            x = self.finish(j, F.linear(x, w, b))
+        return x
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        w, b = self.linear_params(0)
+        return self.forward_from(0, F.linear(x, w, b))

@@ -1,0 +1,189 @@
+"""Point-set operations in pure torch, batched over a leading dimension, no compiled extension.
+
+Shapes: ``B`` batch, ``N`` points, ``M`` query points (centres), ``k`` neighbours, ``C`` channels.
+Indices are ``int64``. Every op gives the same result on CPU and GPU (the orderings below are
+integer or comparison based; distances are computed the same way on both).
+
+* sampling: :func:`random_order` (a ``torch.Generator``), :func:`hash_order` (deterministic and
+  independent of the input order), :func:`random_sample`, :func:`farthest_point_sample`;
+* neighbourhoods: :func:`ball_query` (PointNet++ semantics), :func:`knn` (any dimension: coordinates
+  or features), :func:`pairwise_sqdist`;
+* indexing: :func:`gather` / :func:`group`.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = [
+    "ball_query",
+    "farthest_point_sample",
+    "gather",
+    "group",
+    "hash_order",
+    "knn",
+    "pairwise_sqdist",
+    "random_order",
+    "random_sample",
+]
+
+_MASK32 = 0xFFFFFFFF
+
+
+def gather(points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Gather rows: ``points (B, N, C)``, ``idx (B, *S)`` -> ``(B, *S, C)``."""
+    b, _, c = points.shape
+    flat = idx.reshape(b, -1)
+    out = torch.gather(points, 1, flat.unsqueeze(-1).expand(-1, -1, c))
+    return out.reshape(*idx.shape, c)
+
+
+def group(points: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Group neighbours: ``points (B, N, C)``, ``idx (B, M, k)`` -> ``(B, M, k, C)``."""
+    return gather(points, idx)
+
+
+def pairwise_sqdist(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Squared Euclidean distances ``a (B, M, C)``, ``b (B, N, C)`` -> ``(B, M, N)``.
+
+    Computed from coordinate differences (not ``|a|^2 + |b|^2 - 2ab``), so it is exact to float
+    rounding and never negative; the same formula is used by the brute-force test references.
+    """
+    if a.shape[-1] <= 4:  # coordinates: explicit differences, cheap at C = 3
+        d = a[:, :, None, 0] - b[:, None, :, 0]
+        out = d * d
+        for c in range(1, a.shape[-1]):
+            d = a[:, :, None, c] - b[:, None, :, c]
+            out = out + d * d
+        return out
+    return torch.cdist(a, b, compute_mode="donot_use_mm_for_euclid_dist").square()
+
+
+def random_order(
+    batch: int, n: int, generator: torch.Generator | None = None, device: torch.device | str = "cpu"
+) -> torch.Tensor:
+    """A random permutation of ``range(n)`` per batch row -> ``(B, n)`` int64.
+
+    Drawn on the generator's device (CPU when ``generator`` is None: a fresh default-seeded
+    CPU generator is NOT used; pass one for reproducibility) and moved to ``device``.
+    """
+    gen_device = generator.device if generator is not None else torch.device("cpu")
+    keys = torch.rand(batch, n, generator=generator, device=gen_device)
+    return keys.argsort(dim=1).to(device)
+
+
+def _mul32(h: torch.Tensor, c: int) -> torch.Tensor:
+    """``(h * c) mod 2**32`` for int64 tensors holding 32-bit values, without int64 overflow."""
+    lo = h * (c & 0xFFFF)  # < 2**48
+    hi = ((h * (c >> 16)) & 0xFFFF) << 16  # the high half's contribution mod 2**32
+    return (lo + hi) & _MASK32
+
+
+def _mix32(h: torch.Tensor) -> torch.Tensor:
+    """A 32-bit integer finaliser (murmur3 fmix32) on int64 tensors holding 32-bit values."""
+    h = h ^ (h >> 16)
+    h = _mul32(h, 0x85EBCA6B)
+    h = h ^ (h >> 13)
+    h = _mul32(h, 0xC2B2AE35)
+    return h ^ (h >> 16)
+
+
+def hash_order(xyz: torch.Tensor, seed: int = 0, quantum: float = 1e-4) -> torch.Tensor:
+    """A pseudo-random but deterministic order of the points ``xyz (B, N, 3)`` -> ``(B, N)``.
+
+    Each point gets a 63-bit key from a hash of its coordinates (quantised to ``quantum`` metres),
+    of ``seed`` and of its occurrence rank among identical points (so the copies of a duplicated
+    point - the env pads small clouds with duplicates - are spread through the order like a
+    random permutation would, instead of being bunched together); points are sorted by key.
+    The sequence of points this order produces does not depend on the order the points came in,
+    so a prefix is a random sample invariant to input permutations. (Distinct points closer than
+    ``quantum`` are treated as copies of one point: the only case where input order can matter.)
+    """
+    q = torch.round(xyz.double() / quantum).long() & _MASK32  # (B, N, 3)
+    h1 = torch.full_like(q[..., 0], (seed * 0x9E3779B1 + 0x7F4A7C15) & _MASK32)
+    h2 = torch.full_like(q[..., 0], (seed * 0x85EBCA77 + 0x165667B1) & _MASK32)
+    for c in range(q.shape[-1]):
+        h1 = _mix32(h1 ^ q[..., c])
+        h2 = _mix32(h2 ^ _mul32(q[..., c], 0x27D4EB2F))
+    key = ((h1 >> 1) << 32) | h2  # 63 bits: coordinates collide with probability ~1e-13
+    key, order = torch.sort(key, dim=1, stable=True)
+    # occurrence rank of each point within its run of identical keys
+    pos = torch.arange(key.shape[1], device=key.device).expand_as(key)
+    starts = torch.ones_like(key, dtype=torch.bool)
+    starts[:, 1:] = key[:, 1:] != key[:, :-1]
+    rank = pos - torch.where(starts, pos, torch.zeros_like(pos)).cummax(dim=1).values
+    spread = _mix32(_mix32((key & _MASK32) ^ _mul32(rank + 1, 0x9E3779B1)) ^ (key >> 32))
+    final = ((spread >> 1) << 31) | (key >> 32)  # rank-spread high bits, coordinates as tie-break
+    return torch.gather(order, 1, torch.sort(final, dim=1, stable=True).indices)
+
+
+def random_sample(
+    xyz: torch.Tensor, n: int, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """Indices of ``n`` points drawn without replacement: ``xyz (B, N, C)`` -> ``(B, n)``."""
+    if n > xyz.shape[1]:
+        raise ValueError(f"cannot sample {n} of {xyz.shape[1]} points without replacement")
+    return random_order(xyz.shape[0], xyz.shape[1], generator, xyz.device)[:, :n]
+
+
+def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Tensor:
+    """Farthest-point sampling as PointNet++: ``xyz (B, N, 3)`` -> ``(B, n)`` int64.
+
+    Starts at index ``start`` of every row; each next point is the one farthest from those
+    chosen (ties: the lowest index, as ``argmax``). Vectorised over the batch and the points;
+    the ``n`` iterations are sequential by nature.
+    """
+    b, npts, _ = xyz.shape
+    if n > npts:
+        raise ValueError(f"cannot sample {n} of {npts} points")
+    picks = []
+    mind = torch.full((b, npts), float("inf"), dtype=xyz.dtype, device=xyz.device)
+    cur = torch.full((b,), start, dtype=torch.long, device=xyz.device)
+    for _ in range(n):
+        picks.append(cur)
+        centre = torch.gather(xyz, 1, cur.view(b, 1, 1).expand(b, 1, xyz.shape[-1]))
+        torch.minimum(mind, (xyz - centre).square_().sum(-1), out=mind)
+        cur = mind.argmax(dim=1)
+    return torch.stack(picks, dim=1)
+
+
+def ball_query(
+    radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor, return_count: bool = False
+) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
+    """PointNet++ ball query: ``xyz (B, N, 3)``, ``centres (B, M, 3)`` -> ``idx (B, M, k)``.
+
+    For each centre, the first ``k`` points (in index order) with distance ``< radius``; when
+    fewer are found, the remaining slots repeat the first hit; no hit at all gives index 0 (as
+    the CUDA kernel, whose output starts zeroed). With ``return_count`` also the number of real
+    hits ``(B, M)`` capped at ``k`` (slots ``>= count`` are padding).
+
+    Vectorised: hits keep their index as a key, misses get ``N``; the ``k`` smallest keys (a
+    ``topk``, no sort over ``N``) are the first ``k`` hits in index order.
+    """
+    n = xyz.shape[1]
+    inside = pairwise_sqdist(centres, xyz) < radius * radius  # (B, M, N)
+    ar = torch.arange(n, dtype=torch.int32, device=xyz.device)
+    key = torch.where(inside, ar, n)
+    kk = min(k, n)
+    first = key.topk(kk, dim=-1, largest=False, sorted=True).values.long()  # (B, M, kk)
+    count = (first < n).sum(-1)  # (B, M)
+    if kk < k:  # fewer points than k: pad the slot dimension
+        first = torch.cat([first, first.new_full((*first.shape[:2], k - kk), n)], dim=-1)
+    head = torch.where(count[..., None] > 0, first[..., :1], torch.zeros_like(first[..., :1]))
+    idx = torch.where(first < n, first, head)
+    if return_count:
+        return idx, count
+    return idx
+
+
+def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """k nearest neighbours in any dimension: ``query (B, M, C)``, ``ref (B, N, C)`` ->
+    ``(sqdist (B, M, k), idx (B, M, k))`` sorted by increasing distance (ties: lower index
+    first). Works for coordinates (C = 3) and feature spaces alike.
+    """
+    if k > ref.shape[1]:
+        raise ValueError(f"k = {k} exceeds the {ref.shape[1]} reference points")
+    d = pairwise_sqdist(query, ref)
+    # a stable sort gives the documented tie order; topk's tie order is unspecified
+    sd, si = torch.sort(d, dim=-1, stable=True)
+    return sd[..., :k], si[..., :k]
