@@ -304,6 +304,39 @@ def test_visible_labelled_boxes_contain_points(tiny_world):
     assert scan[:, 3].min() >= 0.0 and scan[:, 3].max() <= 1.0
 
 
+def test_labelled_objects_are_seen_and_long_gaps_split_tracks(tiny_world):
+    """KITTI-like labelling: a labelled box (practically) always holds LiDAR points, whatever its
+    occlusion level, and no track has a gap longer than MAX_LABEL_GAP frames."""
+    from envs.synthetic.world import MAX_LABEL_GAP
+
+    ds = KittiTracking(tiny_world, "all")
+    empty = total = 0
+    for tr in ds.tracklets:
+        assert len(tr) >= 2
+        assert int(np.diff(tr.frames).max()) - 1 <= MAX_LABEL_GAP
+        for t in range(0, len(tr), 2):
+            total += 1
+            empty += int(points_in_box(tr.points(t), tr.boxes[t]).sum() == 0)
+    assert total > 100 and empty / total < 0.01, (empty, total)
+
+
+def test_split_tracks_cuts_long_gaps_and_drops_glimpses():
+    from envs.data.kitti import LabelRow
+    from envs.synthetic.world import split_tracks
+
+    def row(frame: int, track: int) -> LabelRow:
+        return LabelRow.from_box(frame, track, "Car", np.array([1.5, 1.6, 4.0, 0, 1, 10, 0.0]))
+
+    frames_a = [0, 1, 2, 5, 6, 20, 21, 40]  # gap of 2 kept; gap of 13 splits; 40 is a glimpse
+    rows = [row(f, 7) for f in frames_a] + [row(f, 3) for f in (4, 5)]
+    out = split_tracks(rows, max_gap=5, min_frames=2)
+    tracks = defaultdict(list)
+    for r in out:
+        tracks[r.track_id].append(r.frame)
+    assert dict(tracks) == {0: [4, 5], 1: [0, 1, 2, 5, 6], 2: [20, 21]}
+    assert [r.frame for r in out] == sorted(r.frame for r in out)
+
+
 def test_label_sizes_follow_the_category_statistics(tiny_world):
     ds = KittiTracking(tiny_world, "all")
     sizes = defaultdict(list)

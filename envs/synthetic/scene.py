@@ -44,6 +44,8 @@ __all__ = [
 DT = 0.1  # seconds per frame (10 Hz, as KITTI)
 FOV_HALF_ANGLE = math.radians(45.0)  # labelled field of view: the front camera, as KITTI
 LABEL_RANGE = 70.0  # metres; objects farther away are not labelled
+_RACK_CLEAR_M = 1.5  # metres of parking lane kept free on either side of a bike rack
+_RACK_VIEW_M = 15.0  # and before the guaranteed rack / pedestrian (line of sight from the road)
 _F = np.float32
 
 
@@ -610,7 +612,9 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
     # Parking slots: list of occupied [x0, x1] per parking lane (collision-free by construction).
     park_slots: dict[float, list[tuple[float, float]]] = {-1.0: [], 1.0: []}
 
-    def park(category: str, side: float, x_center: float, ridden: bool = False) -> bool:
+    def park(
+        category: str, side: float, x_center: float, ridden: bool = False, clear_before: float = 0.0
+    ) -> bool:
         if side > 0 and not park_l:
             return False
         size = sample_size(category, rng, ridden=ridden)
@@ -625,7 +629,7 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
             if rng.random() < 0.15:
                 yaw += math.pi
             yc += side * rng.uniform(-0.15, 0.15)
-        x0, x1 = x_center - half_x - 0.4, x_center + half_x + 0.4
+        x0, x1 = x_center - half_x - 0.4 - clear_before, x_center + half_x + 0.4
         if in_cross(x0, x1, 3.0):
             return False
         if any(x0 < b and a < x1 for a, b in park_slots[side]):
@@ -694,18 +698,27 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
         phase = _cumdist(v) / stride * 2 * np.pi + rng.uniform(0, 2 * np.pi)
         add_agent("Pedestrian", model, pose, phase, np.clip(v / 1.1, 0.0, 1.0))
 
-    def bike_rack(side: float, x_center: float, count: int) -> None:
+    def bike_rack(side: float, x_center: float, count: int, clear_before: float = 0.0) -> None:
+        """``count`` parked bicycles across the kerb. ``clear_before``: metres of parking lane
+        kept free before the rack (towards -x, where the ego comes from), so that the rack is
+        seen from afar over the empty lane instead of hidden behind parked cars."""
         edge = edge_r if side < 0 else edge_l
         # Slide along the kerb until clear of trees, poles and the cross street.
-        for _ in range(20):
+        # Racks stand where no vehicle parks in front of them (at a gap in the parking lane,
+        # as real racks do at corners / no-parking stretches): a parked van or truck in front
+        # would hide the ~1.1 m bicycles from the road for the whole scene.
+        for _ in range(40):
             x0, x1 = x_center - 0.6, x_center + 0.75 * (count - 1) + 0.6
             clutter = np.asarray(kerb_x.get(side, []))
+            free_x0, free_x1 = x0 - _RACK_CLEAR_M - clear_before, x1 + _RACK_CLEAR_M
             if (
                 not in_cross(x0, x1, 1.0)
                 and not ((clutter > x0 - 0.4) & (clutter < x1 + 0.4)).any()
+                and not any(free_x0 < b and a < free_x1 for a, b in park_slots[side])
             ):
                 break
             x_center += 2.0
+        park_slots[side].append((free_x0, free_x1))
         for i in range(count):
             size = sample_size("Bicycle", rng, ridden=False)
             model = make_object("Bicycle", size, rng, ridden=False)
@@ -726,22 +739,40 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
     # ---- guaranteed targets: every required category is in view around mid-scene.
     ahead = x_mid_ego + rng.uniform(12.0, 18.0)
     n_guaranteed = [0]
-    for cat in config.required:
+    # The bicycle rack and the pedestrian first: each keeps a stretch of parking lane before it
+    # free (a parked van, truck or bus there -- often the guaranteed one -- would hide the
+    # target behind it for the whole scene), and the guaranteed vehicles then park around them.
+    # Parked vehicle targets from low to tall, so the nearest spots (seen first) go to the low
+    # ones and a parked bus does not stand in front of them.
+    first = {"Bicycle": 0, "Pedestrian": 1, "Motorcycle": 2, "Car": 3, "Van": 4, "Truck": 5}
+    required = sorted(config.required, key=lambda c: first.get(c, 6))
+    n_oncoming = 0
+    for cat in required:
         if cat in ("Car", "Van", "Truck", "Bus", "Motorcycle"):
             # The free parking spot nearest to ~10 m ahead of the ego at mid-scene, on either
-            # side; when the street has none (cross street, long vehicles), an oncoming vehicle.
-            offsets = np.arange(-6.0, 60.0, 1.0)
+            # side within 40 m; when the street has none there (cross street, the bicycle rack,
+            # long vehicles), an oncoming vehicle. (A parked target much farther ahead would be
+            # seen only along the parking lane, behind the other parked vehicles.)
+            offsets = np.arange(-6.0, 40.0, 1.0)
             order = np.argsort(np.abs(offsets - 10.0) + rng.uniform(0, 6.0, len(offsets)))
             placed = False
             for k in order:
                 side = -1.0 if (not park_l or rng.random() < 0.6) else 1.0
-                if park(cat, side, ahead + offsets[k]):
+                # A low motorcycle parked across the lane needs the lane before it free.
+                clear = _RACK_VIEW_M / 2 if cat == "Motorcycle" else 0.0
+                if park(cat, side, ahead + offsets[k], clear_before=clear):
                     placed = True
                     break
             if not placed:
-                oncoming(cat, ahead + rng.uniform(0.0, 20.0))
+                # Staggered, so that two oncoming targets do not drive in a queue (the first
+                # would hide the second).
+                oncoming(cat, ahead + 12.0 * n_oncoming + rng.uniform(0.0, 12.0))
+                n_oncoming += 1
         elif cat == "Pedestrian":
             pedestrian(-1.0, ahead + rng.uniform(0.0, 15.0), standing=False)
+            # Its line of sight around mid-scene crosses the parking lane up to ~15 m before it.
+            xs = agents[-1].pose[max(0, n // 2 - 15) : n // 2 + 15, 0]
+            park_slots[-1.0].append((float(xs.min()) - _RACK_VIEW_M, float(xs.max()) + 2.0))
         elif cat == "Cyclist":
             # Alongside only in longer scenes: it must still be labelled for a while.
             slow_ego = 0.5 < float(np.mean(v_ego)) < 6.5 and n >= 60
@@ -757,6 +788,7 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
                 -1.0 if rng.random() < 0.7 else 1.0,
                 ahead + rng.uniform(0.0, 20.0),
                 int(rng.integers(1, 4)),
+                clear_before=_RACK_VIEW_M,
             )
 
     n_guaranteed[0] = len(agents)

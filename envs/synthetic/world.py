@@ -50,7 +50,11 @@ __all__ = [
     "ensure_world",
     "generate_world",
     "get_preset",
+    "MAX_LABEL_GAP",
+    "MIN_LABEL_POINTS",
+    "MIN_TRACK_FRAMES",
     "label_rows",
+    "split_tracks",
     "world_identity",
 ]
 
@@ -278,9 +282,25 @@ def _occlusion_level(bbox_rays: np.ndarray, clear_rays: np.ndarray) -> np.ndarra
     return np.where(bbox_rays == 0, 3, level)
 
 
-def label_rows(scene: Scene, t: int, frame: FrameResult, calib: Calibration) -> list[LabelRow]:
-    """KITTI tracking label rows of the agents in the labelled field of view of frame ``t``."""
-    sel = np.flatnonzero(frame.in_fov)
+# Labelling rule (KITTI-like: annotators label what they see). An agent is labelled in a frame
+# only when it is in the labelled field of view AND receives at least MIN_LABEL_POINTS LiDAR
+# returns of its own (after dropout; ground or other objects' points inside its box do not
+# count). A target hidden for more than MAX_LABEL_GAP consecutive frames (0.5 s) gets a new
+# track id when it reappears; shorter gaps stay inside one track (the loader keeps the labelled
+# frames in order, like KITTI's gapped tracks). Stretches with fewer than MIN_TRACK_FRAMES
+# labelled frames (a glimpse) are not labelled. Label-driven replay writes its source labels
+# unchanged and does not apply this rule.
+MIN_LABEL_POINTS = 3
+MAX_LABEL_GAP = 5
+MIN_TRACK_FRAMES = 2
+
+
+def label_rows(
+    scene: Scene, t: int, frame: FrameResult, calib: Calibration, min_points: int = 0
+) -> list[LabelRow]:
+    """KITTI tracking label rows of the agents in the labelled field of view of frame ``t``
+    that return at least ``min_points`` points of their own (track id = agent track id)."""
+    sel = np.flatnonzero(frame.in_fov & (frame.n_points >= min_points))
     if not len(sel):
         return []
     boxes = frame.boxes[sel]
@@ -303,6 +323,36 @@ def label_rows(scene: Scene, t: int, frame: FrameResult, calib: Calibration) -> 
         )
     rows.sort(key=lambda r: r.track_id)
     return rows
+
+
+def split_tracks(
+    rows: list[LabelRow],
+    max_gap: int = MAX_LABEL_GAP,
+    min_frames: int = MIN_TRACK_FRAMES,
+) -> list[LabelRow]:
+    """Apply the gap rule to visible rows of one scene: each agent's labelled frames are cut
+    where more than ``max_gap`` frames in a row are missing, stretches with fewer than
+    ``min_frames`` frames are dropped, and the stretches get dense new track ids (ordered by
+    agent, then time). Returns the rows sorted by frame, then track id."""
+    by_track: dict[int, list[LabelRow]] = {}
+    for r in rows:
+        by_track.setdefault(r.track_id, []).append(r)
+    out: list[LabelRow] = []
+    next_id = 0
+    for tid in sorted(by_track):
+        track = sorted(by_track[tid], key=lambda r: r.frame)
+        segments: list[list[LabelRow]] = [[track[0]]]
+        for prev, cur in zip(track[:-1], track[1:], strict=True):
+            if cur.frame - prev.frame - 1 > max_gap:
+                segments.append([])
+            segments[-1].append(cur)
+        for seg in segments:
+            if len(seg) < min_frames:
+                continue
+            out.extend(r._replace(track_id=next_id) for r in seg)
+            next_id += 1
+    out.sort(key=lambda r: (r.frame, r.track_id))
+    return out
 
 
 # --------------------------------------------------------------------------- generation
@@ -360,10 +410,11 @@ def _write_scene(
         write_scan(root / "velodyne" / name / f"{t:06d}.bin", frame.points)
         n_points += len(frame.points)
         if rows_override is None:
-            rows.extend(label_rows(scene, t, frame, calib))
+            rows.extend(label_rows(scene, t, frame, calib, min_points=MIN_LABEL_POINTS))
         bar.update(1)
     label_file = root / "label_02" / f"{name}.txt"
     if rows_override is None:
+        rows = split_tracks(rows)
         write_labels(label_file, rows)
         tracks = len({r.track_id for r in rows})
         n_rows = len(rows)
