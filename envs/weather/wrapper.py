@@ -130,17 +130,12 @@ class WeatherWrapper(gym.Wrapper):
     def _install(self, transform) -> None:
         base = self.env.unwrapped
         setter = getattr(base, "set_scan_transform", None)
-        if callable(setter):  # the env's own way, if it has one
-            setter(transform)
-            return
-        base.scan_transform = transform
-        # scans corrupted by (or cached without) the old transform must not be served again
-        cache = getattr(base, "_cache", None)
-        if cache is not None:
-            cache.clear()
-            base._cache_bytes = 0
-        if getattr(base, "_entry", None) is not None:  # an episode in progress: fresh provider
-            base._entry = base._scans(base._index)
+        if not callable(setter):
+            raise TypeError(
+                f"WeatherWrapper needs an env with set_scan_transform (a TrackingEnv); "
+                f"got {type(base).__name__}"
+            )
+        setter(transform)  # installs it and drops scans cached without it
 
     @property
     def weather(self) -> dict[str, Any]:
