@@ -1,13 +1,131 @@
-"""`pointtrack train`."""
+"""`pointtrack train`: pretrain P2B / BAT / GPT (plain -U, decorrelation -W, SAM -S).
+
+Examples::
+
+    pointtrack train --tracker p2b --setting kitti-1 --weighting decorrelation \\
+        --dataset synthetic --preset default --epochs 36 --out runs/p2b-w
+    pointtrack train --config my.yaml --set iters_per_epoch=200 --out runs/x --resume
+    torchrun --nproc_per_node 2 -m training.cli train --tracker bat --out runs/bat-ddp
+
+Precedence: built-in defaults < ``--config FILE`` (YAML, keys of ``training.config.TrainConfig``)
+< the flags below < ``--set KEY=VALUE``. Everything is validated before training starts.
+"""
 
 from __future__ import annotations
 
 import argparse
 
+# flag -> config key (flags default to None so only the ones given override the YAML file)
+_FLAGS = {
+    "tracker": "tracker", "setting": "setting", "category": "category",
+    "weighting": "weighting", "dataset": "dataset", "preset": "preset", "sensor": "sensor",
+    "data_root": "data_root", "world_seed": "world_seed", "epochs": "epochs",
+    "batch_size": "batch_size", "lr": "lr", "iters_per_epoch": "iters_per_epoch",
+    "seed": "seed", "out": "out", "num_workers": "num_workers", "threads": "num_threads",
+    "device": "device", "val_max_tracklets": "val_max_tracklets",
+    "val_max_frames": "val_max_frames", "candidates_per_frame": "candidates_per_frame",
+    "model_size": "model_size",
+}
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
+    parser.add_argument("--tracker", choices=("p2b", "bat", "gpt"))
+    parser.add_argument("--setting", help="class-agnostic setting, e.g. kitti-1 (observed "
+                        "categories are trained)")
+    parser.add_argument("--category", help="class-specific mode: train on this category only")
+    parser.add_argument("--model-size", dest="model_size", choices=("default", "slim"),
+                        help="tracker widths: the papers' (default) or slim (CPU training)")
+    parser.add_argument("--weighting", choices=("none", "decorrelation", "sam"),
+                        help="none (-U), decorrelation (-W), sam (-S)")
+    parser.add_argument("--dataset", choices=("synthetic", "kitti"))
+    parser.add_argument("--preset", help="synthetic world preset (tiny, small, default)")
+    parser.add_argument("--sensor", help="synthetic LiDAR profile (hdl64, hdl32)")
+    parser.add_argument("--data-root", dest="data_root", help="KITTI tracking root")
+    parser.add_argument("--world-seed", dest="world_seed", type=int)
+    parser.add_argument("--epochs", type=int)
+    parser.add_argument("--batch-size", dest="batch_size", type=int)
+    parser.add_argument("--lr", type=float)
+    parser.add_argument("--iters-per-epoch", dest="iters_per_epoch", type=int,
+                        help="cap each epoch at this many batches (a fresh random subset)")
+    parser.add_argument("--candidates-per-frame", dest="candidates_per_frame", type=int)
+    parser.add_argument("--seed", type=int)
+    parser.add_argument("--out", help="run directory (checkpoints, logs)")
+    parser.add_argument("--num-workers", dest="num_workers", type=int)
+    parser.add_argument("--threads", type=int, help="torch.set_num_threads")
+    parser.add_argument("--device", help="cpu or cuda[:N]")
+    parser.add_argument("--val-max-tracklets", dest="val_max_tracklets", type=int)
+    parser.add_argument("--val-max-frames", dest="val_max_frames", type=int)
+    parser.add_argument("--config", help="YAML file of config keys")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="any config key (repeatable), e.g. --set decor_penalty=0.2")
+    parser.add_argument("--resume", action="store_true", help="continue OUT/last.pt")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--export", metavar="FILE.safetensors",
+                        help="write the best (else last) weights with trackers.save")
+
+
+def build_config(args: argparse.Namespace):
+    """The validated config of these arguments (raises ``ConfigError``)."""
+    from training.config import ConfigError, TrainConfig, config_from_dict, load_config, parse_value
+
+    cfg = load_config(args.config) if args.config else TrainConfig()
+    values = {key: getattr(args, flag) for flag, key in _FLAGS.items()
+              if getattr(args, flag, None) is not None}
+    if args.category and args.setting is None:
+        values["setting"] = None
+    if args.no_progress:
+        values["progress"] = False
+    for item in args.set:
+        if "=" not in item:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        key, value = item.split("=", 1)
+        values[key.strip()] = parse_value(value)
+    return config_from_dict(values, cfg)
+
+
+def export(run_dir, path: str) -> None:
+    """Write the run's best (else last) weights as a tracker file via ``trackers.save``."""
+    from pathlib import Path
+
+    import trackers
+    from training.pretrain import load_weights
+
+    run_dir = Path(run_dir)
+    src = run_dir / "best.pt" if (run_dir / "best.pt").exists() else run_dir / "last.pt"
+    weights, config = load_weights(src)
+    from training.config import tracker_config
+
+    kwargs = tracker_config(config["tracker"], config.get("model_size", "default"),
+                            config.get("tracker_config"))
+    model = trackers.make(config["tracker"], **kwargs)
+    model.load_state_dict(weights)
+    trackers.save(model, path)
+    print(f"exported {src} -> {path}")
 
 
 def run(args: argparse.Namespace) -> int:
-    raise SystemExit("pointtrack train: not implemented yet")
+    from training.config import ConfigError
+
+    try:
+        cfg = build_config(args)
+    except ConfigError as exc:
+        raise SystemExit(f"pointtrack train: {exc}") from None
+    from training.pretrain import TrainingError, train
+
+    try:
+        result = train(cfg, resume=args.resume)
+    except (TrainingError, ValueError) as exc:
+        raise SystemExit(f"pointtrack train: {exc}") from None
+    import os
+
+    if int(os.environ.get("RANK", "0")) == 0:
+        best = result.best_val
+        print(f"done: {result.epochs_done} epochs, {result.steps} steps, {result.wall_s:.0f} s, "
+              f"{result.samples_per_s:.1f} samples/s; best val "
+              + (f"success {best['success']:.2f} precision {best['precision']:.2f} "
+                 f"(epoch {result.best_epoch})" if best else "n/a")
+              + f"; checkpoints in {result.out}")
+        if args.export:
+            export(result.out, args.export)
+    return 0

@@ -1,0 +1,111 @@
+"""Supervised training samples (training.samples)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from test_pretrain_support import fake_tracklets
+from torch.utils.data import DataLoader, Subset
+
+from envs.geometry import box_to_world, points_in_box, rotation_z, wrap_yaw
+from envs.observation import crop_box_frame
+from training.samples import TrackingSamples, crop_near
+
+
+@pytest.fixture(scope="module")
+def data():
+    return TrackingSamples(fake_tracklets(n=3, frames=6), candidates_per_frame=3, seed=5)
+
+
+def _reference_box(gt: np.ndarray, search_box: np.ndarray) -> np.ndarray:
+    """Recover the (perturbed) reference box from the GT and the GT expressed in it."""
+    yaw = wrap_yaw(gt[6] - search_box[6])
+    centre = gt[:3] - rotation_z(yaw) @ search_box[:3]
+    return np.array([*centre, *gt[3:6], yaw])
+
+
+def test_shapes_and_keys(data):
+    s = data[0]
+    assert len(data) == 3 * 5 * 3
+    shapes = {"template": (512, 3), "search": (1024, 3), "size": (3,), "motion": (4,),
+              "search_box": (7,), "search_labels": (1024,), "template_centers": (512, 3),
+              "template_labels": (512,)}
+    for k, shape in shapes.items():
+        assert tuple(s[k].shape) == shape, k
+        assert s[k].dtype == torch.float32
+        assert torch.isfinite(s[k]).all()
+
+
+def test_labels_consistent_with_geometry(data):
+    errs = []
+    for index in range(0, len(data), 4):
+        s = {k: v.numpy() for k, v in data[index].items()}
+        k, t, cand = data.locate(index)
+        tr = data.tracklets[k]
+        gt = tr.boxes[t]
+        ref = _reference_box(gt, s["search_box"])
+        errs.append(ref[:2] - gt[:2])
+        world = box_to_world(s["search"].astype(np.float64), ref)
+        lab = s["search_labels"] > 0.5
+        assert lab.any()
+        # labelled points lie in the exact GT box, the others outside it
+        assert points_in_box(world[lab], gt).all()
+        assert not points_in_box(world[~lab], gt).any()
+        # vote targets (centre - point) lead every target point to the GT centre
+        votes = s["search"][lab] + (s["search_box"][:3] - s["search"][lab])
+        assert np.allclose(box_to_world(votes.astype(np.float64), ref), gt[:3], atol=1e-4)
+        # target points fill the box, so their mean is near its centre
+        assert np.linalg.norm(world[lab].mean(0) - gt[:3]) < 0.35 * gt[3:6].max()
+        # template: first half around the origin, second half around the recorded centre
+        tl = s["template_labels"] > 0.5
+        half = 256
+        assert np.allclose(s["template_centers"][:half], 0)
+        first = s["template"][:half][tl[:half]]
+        assert (np.abs(first) <= gt[3:6] / 2 + 1e-4).all()
+        second = s["template"][half:][tl[half:]]
+        c2 = s["template_centers"][half]
+        assert np.linalg.norm(second.mean(0) - c2) < 0.35 * gt[3:6].max()
+        if cand == 0:  # unjittered previous box: the target centre is the origin
+            assert np.allclose(c2, 0, atol=1e-5)
+        else:
+            assert np.abs(c2[:2]).max() <= 0.3 * np.sqrt(2) + 1e-5
+        assert np.allclose(s["size"], tr.boxes[0][3:6])
+        if t == 1:
+            assert np.allclose(s["motion"], 0)
+    errs = np.array(errs)
+    assert errs.std() > 0.3  # the search region is perturbed (sigma 1 m)
+
+
+def test_crop_near_equals_whole_scan_crop():
+    tr = fake_tracklets(n=1)[0]
+    pts = tr.points(2)
+    for scale, off in ((1.25, 0.0), (1.25, 2.0)):
+        box = tr.boxes[2] + np.array([0.3, -0.2, 0, 0, 0, 0, 0.1])
+        assert np.array_equal(crop_near(pts, box, scale, off), crop_box_frame(pts, box, scale, off))
+
+
+def test_deterministic_across_worker_counts_and_epochs(data):
+    idx = list(range(0, len(data), 5))
+
+    def collect(workers):
+        loader = DataLoader(Subset(data, idx), batch_size=3, num_workers=workers)
+        return [b for b in loader]
+
+    a, b = collect(0), collect(2)
+    for x, y in zip(a, b, strict=True):
+        for k in x:
+            assert torch.equal(x[k], y[k]), k
+    again = data[idx[1]]
+    data.set_epoch(1)
+    try:
+        other = data[idx[1]]
+    finally:
+        data.set_epoch(0)
+    assert torch.equal(again["search"], data[idx[1]]["search"])
+    assert not torch.equal(again["search"], other["search"])
+
+
+def test_no_tracklets_is_an_error():
+    with pytest.raises(ValueError, match="no tracklets"):
+        TrackingSamples([])

@@ -1,0 +1,586 @@
+"""One pretraining loop for P2B, BAT and GPT: plain (-U), feature-decorrelation weighted (-W) and
+SAM (-S).
+
+* Optimisation: Adam (lr 1e-3), ``StepLR`` x0.2 every 12 epochs, batch 48 (GPT's constants), all in
+  :class:`training.config.TrainConfig`. ``iters_per_epoch`` caps an epoch at a fresh random subset
+  of the samples (chosen from ``(seed, epoch)``).
+* -U minimises the mean per-sample loss; -W the weighted sum ``sum_m w_m L_m`` with the weights of
+  :class:`training.weighting.FeatureDecorrelation` learned on the detached pooled fused features
+  of the same forward pass (Algorithm 1 of ``000_…``); -S takes SAM steps (:mod:`training.sam`).
+* Validation every ``val_every`` epochs: the env's OPE Success/Precision on the val split,
+  through ``training.evaluate.evaluate``, on the setting's **observed** categories only (the unseen
+  ones are never looked at before test). The checkpoint with the best val Success is kept.
+* Checkpoints (``last.pt`` after every epoch, ``best.pt`` at the best val Success) hold the
+  weights, optimizer, scheduler, decorrelation memory, RNG states (torch, numpy, python), epoch,
+  step and config; they are written atomically (temporary file + ``os.replace``) and read with
+  ``torch.load(weights_only=True)``. ``resume=True`` continues from ``last.pt``; every random
+  draw depends only on ``(seed, epoch, sample index)`` and the torch generators (the global one
+  and a tracker's own ``model.generator`` for point sampling) are reseeded at every epoch, so a
+  resumed run ends with exactly the weights of an uninterrupted one (CPU). A checkpoint of
+  another tracker or config is refused, naming the differing keys.
+* A non-finite loss stops the run with :class:`TrainingError` naming the step and the samples;
+  the last good checkpoint is left as it was.
+* Data parallel: under ``torchrun --nproc_per_node N`` each process takes ``batch_size / N`` of
+  every global batch (``DistributedSampler`` over the epoch's sample list), gradients are averaged
+  by DDP (gloo on CPU, nccl on GPU); -W gathers the pooled features of the whole global batch so
+  every process learns the same weights as a single process would. Only rank 0 validates, logs
+  and writes checkpoints: one logical result.
+* Logs: a tqdm bar with running losses, ``log.jsonl`` (always), TensorBoard scalars when
+  ``torch.utils.tensorboard`` can be imported.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Subset
+
+from training.config import IDENTITY_EXEMPT, TrainConfig
+from training.sam import SAM
+from training.samples import split_batch
+from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
+
+__all__ = ["TrainResult", "TrainingError", "Trainer", "train"]
+
+CHECKPOINT_FORMAT = 1
+
+
+class TrainingError(RuntimeError):
+    """A run that cannot start or continue (bad resume, non-finite loss, no data)."""
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    epochs_done: int
+    steps: int
+    best_epoch: int | None
+    best_val: dict[str, float] | None
+    history: list[dict[str, Any]] = field(default_factory=list)
+    wall_s: float = 0.0
+    samples_per_s: float = 0.0
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def _rng_state() -> dict[str, Any]:
+    mt, keys, pos, has_gauss, cached = np.random.get_state()
+    version, internal, gauss = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy_keys": torch.from_numpy(keys.astype(np.int64)),
+        "numpy_pos": int(pos),
+        "numpy_has_gauss": int(has_gauss),
+        "numpy_cached": float(cached),
+        "python": [int(version), list(internal), gauss],
+    }
+
+
+def _set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(
+        ("MT19937", state["numpy_keys"].numpy().astype(np.uint32), state["numpy_pos"],
+         state["numpy_has_gauss"], state["numpy_cached"])
+    )
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+
+
+def _epoch_seed(seed: int, epoch: int, rank: int) -> int:
+    return (seed * 1_000_003 + epoch * 10_007 + rank * 101 + 17) % (2**62)
+
+
+def _identity(cfg: TrainConfig) -> dict[str, Any]:
+    return {k: v for k, v in cfg.to_dict().items() if k not in IDENTITY_EXEMPT}
+
+
+def _dist_info() -> tuple[int, int]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    return rank, world
+
+
+def default_model_factory(cfg: TrainConfig) -> torch.nn.Module:
+    import trackers
+
+    return trackers.make(cfg.tracker, **cfg.make_kwargs())
+
+
+def default_train_data(cfg: TrainConfig):
+    from training.samples import TrackingSamples, load_tracklets
+
+    tracklets, _, root = load_tracklets(
+        cfg.dataset, "train", setting=cfg.setting, category=cfg.category, preset=cfg.preset,
+        sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
+    )
+    data = TrackingSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed)
+    data.root = str(root)  # logged: a synthetic world's folder name carries its generator hash
+    return data
+
+
+def _truncate(tracklet, max_frames: int | None):
+    if max_frames is None or len(tracklet) <= max_frames:
+        return tracklet
+    return dataclasses.replace(
+        tracklet, frames=tracklet.frames[:max_frames], boxes=tracklet.boxes[:max_frames]
+    )
+
+
+def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, float]]:
+    """OPE on the val split, observed categories only, via ``training.evaluate.evaluate``."""
+    from envs.data import class_specific, get_setting
+    from envs.tracking_env import TrackingEnv
+    from training.evaluate import evaluate
+    from training.samples import load_tracklets
+
+    st = class_specific(cfg.category) if cfg.category else get_setting(cfg.setting)
+    tracklets, _, _ = load_tracklets(
+        cfg.dataset, "val", setting=cfg.setting, category=cfg.category, preset=cfg.preset,
+        sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
+    )  # observed categories only: model selection never sees the unseen ones
+    if cfg.val_max_tracklets is not None and len(tracklets) > cfg.val_max_tracklets:
+        pick = np.linspace(0, len(tracklets) - 1, cfg.val_max_tracklets).round().astype(int)
+        tracklets = [tracklets[i] for i in sorted(set(pick.tolist()))]
+    tracklets = [_truncate(tr, cfg.val_max_frames) for tr in tracklets]
+
+    holder = _Tracklets(tracklets)
+    n_envs = max(1, min(8, len(tracklets)))
+
+    def run(model: torch.nn.Module) -> dict[str, float]:
+        import gymnasium as gym
+
+        def make_env():
+            return TrackingEnv(holder, setting=st, categories=st.observed, sampling="sequential")
+
+        env = gym.vector.SyncVectorEnv([make_env] * n_envs) if n_envs > 1 else make_env()
+        try:
+            report = evaluate(model, env, seed=cfg.seed)
+        finally:
+            env.close()
+        return _summarise_report(report)
+
+    return run
+
+
+class _Tracklets:
+    """A minimal dataset (``.tracklets``) for the val env."""
+
+    def __init__(self, tracklets):
+        self.tracklets = tracklets
+
+
+def _summarise_report(report: Any) -> dict[str, float]:
+    """Pull mean Success/Precision out of an evaluate() report (dict-like)."""
+    rep = report.to_dict() if hasattr(report, "to_dict") else report
+    if isinstance(rep, dict):
+        for key in ("mean", "overall", "all"):
+            sub = rep.get(key)
+            if isinstance(sub, dict) and "success" in sub:
+                return {"success": float(sub["success"]), "precision": float(sub["precision"])}
+        if "success" in rep:
+            return {"success": float(rep["success"]), "precision": float(rep["precision"])}
+    raise TrainingError(f"cannot read Success/Precision from the evaluation report: {rep!r}"[:500])
+
+
+# --------------------------------------------------------------------------- the trainer
+
+
+class Trainer:
+    """Holds the model, optimisation state and data of one run. Use :func:`train`."""
+
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        *,
+        model_factory: Callable[[TrainConfig], torch.nn.Module] | None = None,
+        train_data: Any = None,
+        val_fn: Callable[[torch.nn.Module], dict[str, float]] | None | bool = None,
+    ) -> None:
+        self.cfg = cfg.validate()
+        self.rank, self.world = _dist_info()
+        self.main = self.rank == 0
+        self.device = torch.device(cfg.device)
+        if cfg.num_threads:
+            torch.set_num_threads(cfg.num_threads)
+        if cfg.batch_size % self.world:
+            raise TrainingError(
+                f"batch_size {cfg.batch_size} is not divisible by the {self.world} processes"
+            )
+        self.local_batch = cfg.batch_size // self.world
+        self.pg = None
+        if self.world > 1:
+            import torch.distributed as dist
+
+            if not dist.is_initialized():
+                backend = "nccl" if self.device.type == "cuda" else "gloo"
+                dist.init_process_group(backend)
+            self.pg = dist
+        torch.manual_seed(cfg.seed)  # identical initial weights on every rank
+        self.model = (model_factory or default_model_factory)(cfg).to(self.device)
+        self.net: torch.nn.Module = self.model
+        if self.world > 1:
+            from torch.nn.parallel import DistributedDataParallel
+
+            self.net = DistributedDataParallel(self.model, find_unused_parameters=True)
+        self.data = train_data if train_data is not None else default_train_data(cfg)
+        if len(self.data) < cfg.batch_size:
+            raise TrainingError(
+                f"only {len(self.data)} training samples, fewer than one batch of {cfg.batch_size}"
+            )
+        self.base_opt = torch.optim.Adam(
+            self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
+        )
+        self.scheduler = torch.optim.lr_scheduler.StepLR(
+            self.base_opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma
+        )
+        self.sam = SAM(self.base_opt, rho=cfg.sam_rho) if cfg.weighting == "sam" else None
+        self.decor = None
+        if cfg.weighting == "decorrelation":
+            self.decor = FeatureDecorrelation(
+                n_functions=cfg.rff_functions, iterations=cfg.decor_iters, lr=cfg.decor_lr,
+                decay_every=cfg.decor_decay_every, momentum=cfg.decor_momentum,
+                penalty=cfg.decor_penalty, use_memory=cfg.decor_memory,
+                memory_ratio=cfg.decor_memory_ratio, memory_size=cfg.batch_size, seed=cfg.seed,
+            )
+        if val_fn is None:
+            val_fn = default_val_fn(cfg) if self.main else False
+        self.val_fn = val_fn or None
+        self.out = Path(cfg.out)
+        self.epoch = 0  # epochs completed
+        self.step = 0
+        self.best_val: dict[str, float] | None = None
+        self.best_epoch: int | None = None
+        self.history: list[dict[str, Any]] = []
+        self._tb = None
+        self._log = None
+
+    # ------------------------------------------------------------------ checkpoints
+    def state(self) -> dict[str, Any]:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "tracker": self.cfg.tracker,
+            "config": self.cfg.to_dict(),
+            "model": {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
+            "optimizer": self.base_opt.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "decorrelation": self.decor.state_dict() if self.decor else {},
+            "rng": _rng_state(),
+            "epoch": self.epoch,
+            "step": self.step,
+            "best_val": self.best_val,
+            "best_epoch": self.best_epoch,
+            "history": json.dumps(self.history),
+        }
+
+    def load(self, path: Path) -> None:
+        try:
+            ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        except Exception as exc:  # noqa: BLE001 - report any unreadable file the same way
+            raise TrainingError(f"cannot read checkpoint {path}: {exc}") from exc
+        if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+            raise TrainingError(f"{path} is not a pointtrack training checkpoint")
+        if ckpt.get("tracker") != self.cfg.tracker:
+            raise TrainingError(
+                f"refusing to resume: {path} is a checkpoint of tracker {ckpt.get('tracker')!r}, "
+                f"this run trains {self.cfg.tracker!r}"
+            )
+        saved = {k: v for k, v in ckpt["config"].items() if k not in IDENTITY_EXEMPT}
+        mine = _identity(self.cfg)
+        diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
+        if diff:
+            details = ", ".join(f"{k}: checkpoint {saved.get(k)!r} vs now {mine.get(k)!r}"
+                                for k in diff)
+            raise TrainingError(
+                f"refusing to resume from {path}: it was trained with a different config "
+                f"({details})"
+            )
+        self.model.load_state_dict(ckpt["model"])
+        self.base_opt.load_state_dict(ckpt["optimizer"])
+        self.scheduler.load_state_dict(ckpt["scheduler"])
+        if self.decor is not None:
+            self.decor.load_state_dict(ckpt["decorrelation"])
+        _set_rng_state(ckpt["rng"])
+        self.epoch = int(ckpt["epoch"])
+        self.step = int(ckpt["step"])
+        self.best_val = ckpt.get("best_val")
+        self.best_epoch = ckpt.get("best_epoch")
+        self.history = json.loads(ckpt.get("history") or "[]")
+
+    def _save(self, name: str) -> None:
+        if self.main:
+            _atomic_save(self.state(), self.out / name)
+
+    # ------------------------------------------------------------------ logging
+    def _open_logs(self) -> None:
+        if not self.main:
+            return
+        self.out.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.out / "log.jsonl", "a")  # noqa: SIM115 - closed in _close_logs
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._tb = SummaryWriter(str(self.out / "tb"))
+        except Exception:  # noqa: BLE001 - tensorboard is optional
+            self._tb = None
+
+    def _write(self, record: dict[str, Any]) -> None:
+        if not self.main:
+            return
+        if self._log is not None:
+            self._log.write(json.dumps(record) + "\n")
+            self._log.flush()
+        if self._tb is not None:
+            step = record.get("step", self.step)
+            for k, v in record.items():
+                if k not in ("step", "epoch", "kind") and isinstance(v, int | float):
+                    self._tb.add_scalar(f"{record.get('kind', 'train')}/{k}", v, step)
+
+    def _close_logs(self) -> None:
+        if self._log is not None:
+            self._log.close()
+            self._log = None
+        if self._tb is not None:
+            self._tb.close()
+            self._tb = None
+
+    # ------------------------------------------------------------------ one epoch
+    def _loader(self, epoch: int) -> DataLoader:
+        cfg = self.cfg
+        if hasattr(self.data, "set_epoch"):
+            self.data.set_epoch(epoch)
+        n = len(self.data)
+        perm = np.random.default_rng([cfg.seed, epoch, 7]).permutation(n)
+        count = n // cfg.batch_size
+        if cfg.iters_per_epoch is not None:
+            count = min(count, cfg.iters_per_epoch)
+        subset = Subset(self.data, perm[: count * cfg.batch_size].tolist())
+        sampler = None
+        if self.world > 1:
+            from torch.utils.data.distributed import DistributedSampler
+
+            sampler = DistributedSampler(
+                subset, num_replicas=self.world, rank=self.rank, shuffle=False, drop_last=True
+            )
+        return DataLoader(
+            subset, batch_size=self.local_batch, sampler=sampler, shuffle=False,
+            num_workers=cfg.num_workers, drop_last=True,
+        )
+
+    def _gather_features(self, z: torch.Tensor) -> torch.Tensor:
+        """Pooled features of the whole global batch, in single-process order."""
+        if self.world == 1:
+            return z
+        parts = [torch.empty_like(z) for _ in range(self.world)]
+        self.pg.all_gather(parts, z.contiguous())
+        # rank r's j-th sample is position r + j * world of the global batch
+        return torch.stack(parts, dim=1).reshape(-1, z.shape[-1])
+
+    def _sample_weights(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor | None:
+        if self.decor is None:
+            return None
+        z = pool_features(outputs["Z"].detach()).float().cpu()
+        w_global = self.decor.weights(self._gather_features(z), self.step)
+        local = w_global[self.rank :: self.world] if self.world > 1 else w_global
+        return local.to(self.device)
+
+    def _objective(self, per_sample: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+        if weights is None:
+            return per_sample.mean()
+        return (weights * per_sample).sum() * self.world
+
+    def _check_finite(self, losses: dict[str, torch.Tensor], indices: torch.Tensor) -> None:
+        total = losses["total"].detach()
+        if torch.isfinite(total).all():
+            return
+        bad = (~torch.isfinite(total)).nonzero().flatten().tolist()
+        idx = [int(indices[i]) for i in bad]
+        describe = getattr(self.data, "describe", None)
+        names = [describe(i) for i in idx] if describe else [f"sample {i}" for i in idx]
+        terms = [k for k, v in losses.items() if not torch.isfinite(v.detach()).all()]
+        raise TrainingError(
+            f"non-finite loss at step {self.step} (epoch {self.epoch + 1}) in terms "
+            f"{', '.join(terms)}: " + "; ".join(names[:10])
+            + (f" and {len(names) - 10} more" if len(names) > 10 else "")
+            + f". The last good checkpoint ({self.out / 'last.pt'}) is left as it was."
+        )
+
+    def train_epoch(self) -> dict[str, float]:
+        cfg = self.cfg
+        epoch = self.epoch  # 0-based index of the epoch being trained
+        torch.manual_seed(_epoch_seed(cfg.seed, epoch, self.rank))
+        gen = getattr(self.model, "generator", None)  # the trackers' own sampling generator
+        if isinstance(gen, torch.Generator):
+            gen.manual_seed(_epoch_seed(cfg.seed, epoch, self.rank) + 1)
+        loader = self._loader(epoch)
+        self.net.train()
+        running: dict[str, float] = {}
+        sums: dict[str, float] = {}
+        n_batches = 0
+        bar = None
+        if self.main and cfg.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{cfg.epochs}", leave=False,
+                       dynamic_ncols=True)
+        t0 = time.perf_counter()
+        for sample in loader:
+            batch, targets, indices = split_batch(sample, self.device)
+            outputs = self.net(batch)
+            losses = self.model.loss(outputs, targets)
+            self._check_finite(losses, indices)
+            weights = self._sample_weights(outputs)
+            loss = self._objective(losses["total"], weights)
+            self.base_opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if self.sam is not None:
+                def closure(batch=batch, targets=targets, weights=weights):
+                    out2 = self.net(batch)
+                    l2 = self._objective(self.model.loss(out2, targets)["total"], weights)
+                    l2.backward()
+                    return l2
+
+                self.sam.first_step(zero_grad=True)
+                closure()
+                if cfg.grad_clip:
+                    torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                self.sam.second_step(zero_grad=True)
+            else:
+                if cfg.grad_clip:
+                    torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                self.base_opt.step()
+            self.step += 1
+            n_batches += 1
+            values = {k: float(v.detach().mean()) for k, v in losses.items()}
+            values["objective"] = float(loss.detach()) / (self.world if weights is not None else 1)
+            if weights is not None:
+                values["ess"] = effective_sample_size(weights) if self.world == 1 else float("nan")
+            for k, v in values.items():
+                running[k] = v if k not in running else 0.9 * running[k] + 0.1 * v
+                sums[k] = sums.get(k, 0.0) + v
+            if bar is not None:
+                bar.set_postfix({k: f"{running[k]:.3f}" for k in list(running)[:5]})
+                bar.update(1)
+            if self.main and not cfg.progress and self.step % 25 == 0:
+                print(f"epoch {epoch + 1} step {self.step} "
+                      + " ".join(f"{k}={running[k]:.4g}" for k in running), flush=True)
+            if self.main and (self.step % 10 == 0):
+                self._write({"kind": "train", "step": self.step, "epoch": epoch + 1,
+                             "lr": self.base_opt.param_groups[0]["lr"], **values})
+        if bar is not None:
+            bar.close()
+        wall = time.perf_counter() - t0
+        self.scheduler.step()
+        self.epoch += 1
+        mean = {k: v / max(n_batches, 1) for k, v in sums.items()}
+        mean["samples_per_s"] = n_batches * cfg.batch_size / max(wall, 1e-9)
+        mean["epoch_wall_s"] = wall
+        return mean
+
+    def validate(self) -> dict[str, float] | None:
+        if self.val_fn is None:
+            return None
+        self.model.eval()
+        with torch.no_grad():
+            result = self.val_fn(self.model)
+        self.model.train()
+        return result
+
+    def run(self, resume: bool = False) -> TrainResult:
+        cfg = self.cfg
+        last = self.out / "last.pt"
+        if resume:
+            if last.exists():
+                self.load(last)
+                if self.main:
+                    print(f"resuming {last}: {self.epoch} epochs done, step {self.step}")
+            elif self.main:
+                print(f"no checkpoint at {last}; starting a fresh run")
+        elif last.exists():
+            raise TrainingError(
+                f"{last} already exists: pass --resume to continue it, or choose another --out"
+            )
+        if self.main:
+            self.out.mkdir(parents=True, exist_ok=True)
+            (self.out / "config.yaml").write_text(_yaml(cfg.to_dict()))
+        self._open_logs()
+        self._write({"kind": "data", "step": self.step, "samples": len(self.data),
+                     "data_root": str(getattr(self.data, "root", "")), "world_size": self.world})
+        t_start = time.perf_counter()
+        samples = 0
+        try:
+            while self.epoch < cfg.epochs:
+                stats = self.train_epoch()
+                samples += int(round(stats["samples_per_s"] * stats["epoch_wall_s"]))
+                record: dict[str, Any] = {"kind": "epoch", "epoch": self.epoch, "step": self.step,
+                                          **stats}
+                if self.world > 1:
+                    self.pg.barrier()
+                val = None
+                if self.main and (self.epoch % cfg.val_every == 0 or self.epoch == cfg.epochs):
+                    val = self.validate()
+                if val is not None:
+                    record.update({f"val_{k}": v for k, v in val.items()})
+                    if self.best_val is None or val["success"] > self.best_val["success"]:
+                        self.best_val, self.best_epoch = dict(val), self.epoch
+                        self._save("best.pt")
+                self.history.append(record)
+                self._write(record)
+                self._save("last.pt")
+                if self.main:
+                    msg = " ".join(f"{k}={v:.4g}" for k, v in record.items()
+                                   if isinstance(v, float) and k != "epoch_wall_s")
+                    print(f"epoch {self.epoch}/{cfg.epochs} {msg}", flush=True)
+                if self.world > 1:
+                    self.pg.barrier()
+        finally:
+            self._close_logs()
+        wall = time.perf_counter() - t_start
+        return TrainResult(
+            out=self.out, epochs_done=self.epoch, steps=self.step, best_epoch=self.best_epoch,
+            best_val=self.best_val, history=self.history, wall_s=wall,
+            samples_per_s=samples / max(wall, 1e-9),
+        )
+
+
+def _yaml(values: dict[str, Any]) -> str:
+    import yaml
+
+    return yaml.safe_dump(values, sort_keys=False)
+
+
+def train(
+    cfg: TrainConfig,
+    *,
+    resume: bool = False,
+    model_factory: Callable[[TrainConfig], torch.nn.Module] | None = None,
+    train_data: Any = None,
+    val_fn: Callable[[torch.nn.Module], dict[str, float]] | None | bool = None,
+) -> TrainResult:
+    """Run (or resume) one pretraining run; see the module docstring. ``val_fn=False`` disables
+    validation; the factories let tests use stand-in models and data."""
+    trainer = Trainer(cfg, model_factory=model_factory, train_data=train_data, val_fn=val_fn)
+    return trainer.run(resume=resume)
+
+
+def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Model weights and config of a training checkpoint (``best.pt`` / ``last.pt``)."""
+    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    return ckpt["model"], ckpt["config"]

@@ -1,0 +1,221 @@
+"""Supervised pretraining samples from tracklets, built as P2B / BAT / GPT build them.
+
+One sample is ``(tracklet, frame t >= 1, candidate c)``:
+
+* **template** (512 points): 256 from frame 0 cropped with the ground-truth box scaled 1.25, in
+  that box's frame, plus 256 from frame ``t - 1`` cropped with the previous ground-truth box
+  jittered uniformly by up to ±0.3 m in x, y and ±1.5° in yaw (candidate 0 is unjittered), in the
+  jittered box's frame — the env's ``"first_and_previous"`` template with the previous
+  prediction replaced by the jittered previous ground truth.
+* **search** (1024 points): frame ``t`` cropped around the current ground-truth box perturbed by
+  Gaussian noise (sigma 1 m in x and y, yaw variance 5 deg², i.e. sigma sqrt(5)°; z and size
+  unchanged), scale 1.25 plus 2 m, in the perturbed (reference) box's frame.
+* **size** (3,): the target's l, w, h from frame 0 (as the env gives it).
+* **motion** (4,): the ground-truth offset of frame ``t - 1`` relative to frame ``t - 2`` in the
+  latter's box frame (what the env reports as the last motion for a perfect tracker), zeros at
+  ``t = 1`` (the env's first step).
+
+Targets (the INTERFACES.md ``targets`` contract): ``search_box (7,)`` the ground truth in the
+reference frame; ``search_labels (1024,)`` 1 for search points inside the exact ground-truth box;
+``template_centers (512, 3)`` the true target centre in each template point's own box frame (the
+origin for the first half, the previous ground truth's centre in the jittered frame for the
+second); ``template_labels (512,)`` 1 for template points inside the exact box. Vote targets
+(``search_box[:3] - point``), box offsets and BAT's Box-Cloud targets follow from these and are
+computed by the trackers' losses. An empty crop gives zero points and zero labels.
+
+Cropping and resampling are :mod:`envs.observation`'s (the same code as the env's observations).
+Each sample is deterministic from ``(seed, epoch, index)``: its generator is
+``numpy.random.default_rng([seed, epoch, index])``, so any number of DataLoader workers, and a
+resumed run, produce the same samples; :meth:`TrackingSamples.set_epoch` gives fresh
+perturbations every epoch.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from envs.geometry import boxes_in_frame, offset_between, points_in_box
+from envs.observation import (
+    SEARCH_OFFSET_M,
+    SEARCH_SCALE,
+    SEARCH_SIZE,
+    TEMPLATE_SCALE,
+    TEMPLATE_SIZE,
+    crop_box_frame,
+    resample,
+)
+
+__all__ = ["TrackingSamples", "crop_near", "load_tracklets"]
+
+JITTER_XY_M = 0.3
+JITTER_YAW_RAD = math.radians(1.5)
+SEARCH_SIGMA_XY_M = 1.0
+SEARCH_SIGMA_YAW_RAD = math.radians(math.sqrt(5.0))
+
+
+def crop_near(points: np.ndarray, box: np.ndarray, scale: float, offset_m: float) -> np.ndarray:
+    """Exactly ``crop_box_frame(points, box, scale, offset_m)``, faster on whole scans: a cheap
+    axis-aligned pre-filter (a superset, order kept) before the exact crop."""
+    hl = 0.5 * scale * box[3] + offset_m
+    hw = 0.5 * scale * box[4] + offset_m
+    r = math.hypot(hl, hw) + 1e-3
+    near = (np.abs(points[:, 0] - box[0]) <= r) & (np.abs(points[:, 1] - box[1]) <= r)
+    return crop_box_frame(points[near], box, scale, offset_m)
+
+
+class TrackingSamples(Dataset):
+    """A ``torch.utils.data.Dataset`` of supervised tracking samples (see the module docstring).
+
+    Args:
+        tracklets: the tracklets to sample from (already restricted to the trained categories).
+        candidates_per_frame: samples per frame (candidate 0 has an unjittered previous box).
+        seed: base seed; with the epoch and the index it determines every random draw.
+    """
+
+    def __init__(
+        self,
+        tracklets: Sequence,
+        *,
+        candidates_per_frame: int = 4,
+        seed: int = 0,
+        template_size: int = TEMPLATE_SIZE,
+        search_size: int = SEARCH_SIZE,
+    ) -> None:
+        self.tracklets = [tr for tr in tracklets if len(tr) >= 2]
+        if not self.tracklets:
+            raise ValueError("no tracklets with at least 2 frames to build training samples from")
+        if candidates_per_frame < 1:
+            raise ValueError("candidates_per_frame must be >= 1")
+        self.candidates = candidates_per_frame
+        self.seed = int(seed)
+        self.epoch = 0
+        self.template_size = template_size
+        self.search_size = search_size
+        frames = np.array([len(tr) - 1 for tr in self.tracklets], dtype=np.int64)
+        self._starts = np.concatenate([[0], np.cumsum(frames)])
+
+    def __len__(self) -> int:
+        return int(self._starts[-1]) * self.candidates
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def locate(self, index: int) -> tuple[int, int, int]:
+        """``index`` -> ``(tracklet position, frame t >= 1, candidate)``."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"sample index {index} out of range [0, {len(self)})")
+        item, cand = divmod(int(index), self.candidates)
+        k = int(np.searchsorted(self._starts, item, side="right") - 1)
+        return k, item - int(self._starts[k]) + 1, cand
+
+    def describe(self, index: int) -> str:
+        k, t, c = self.locate(index)
+        tr = self.tracklets[k]
+        return f"sample {index} (tracklet {tr.tracklet_id} {tr.category}, frame {t}, candidate {c})"
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        k, t, cand = self.locate(index)
+        tr = self.tracklets[k]
+        rng = np.random.default_rng([self.seed, self.epoch, int(index)])
+        boxes = np.asarray(tr.boxes, dtype=np.float64)
+        box0, prev_gt, gt = boxes[0], boxes[t - 1], boxes[t]
+
+        # template: first GT + (jittered) previous GT, each in its own frame
+        prev = prev_gt.copy()
+        if cand > 0:
+            prev[0:2] += rng.uniform(-JITTER_XY_M, JITTER_XY_M, 2)
+            prev[6] += rng.uniform(-JITTER_YAW_RAD, JITTER_YAW_RAD)
+        # search region around the Gaussian-perturbed current GT
+        ref = gt.copy()
+        ref[0:2] += rng.normal(0.0, SEARCH_SIGMA_XY_M, 2)
+        ref[6] += rng.normal(0.0, SEARCH_SIGMA_YAW_RAD)
+        ref[6] = (ref[6] + math.pi) % (2 * math.pi) - math.pi
+        prev[6] = (prev[6] + math.pi) % (2 * math.pi) - math.pi
+
+        first_crop = crop_near(tr.points(0), box0, TEMPLATE_SCALE, 0.0)
+        prev_crop = crop_near(tr.points(t - 1), prev, TEMPLATE_SCALE, 0.0)
+        search_crop = crop_near(tr.points(t), ref, SEARCH_SCALE, SEARCH_OFFSET_M)
+        half = self.template_size // 2
+        a, m_a = resample(first_crop, half, rng)
+        b, m_b = resample(prev_crop, self.template_size - half, rng)
+        search, m_s = resample(search_crop, self.search_size, rng)
+
+        own0 = np.array([0, 0, 0, *box0[3:6], 0.0])
+        prev_in_own = boxes_in_frame(prev_gt, prev)
+        search_box = boxes_in_frame(gt, ref)
+        labels_a = points_in_box(a, own0) & (m_a > 0)
+        labels_b = points_in_box(b, prev_in_own) & (m_b > 0)
+        search_labels = points_in_box(search, search_box) & (m_s > 0)
+        centers = np.zeros((self.template_size, 3), np.float32)
+        centers[half:] = prev_in_own[:3]
+        motion = offset_between(boxes[t - 2], prev_gt) if t >= 2 else np.zeros(4)
+
+        f32 = torch.float32
+        return {
+            "template": torch.from_numpy(np.concatenate([a, b])),
+            "search": torch.from_numpy(search),
+            "size": torch.as_tensor(box0[3:6], dtype=f32),
+            "motion": torch.as_tensor(motion, dtype=f32),
+            "search_box": torch.as_tensor(search_box, dtype=f32),
+            "search_labels": torch.from_numpy(search_labels.astype(np.float32)),
+            "template_centers": torch.from_numpy(centers),
+            "template_labels": torch.from_numpy(
+                np.concatenate([labels_a, labels_b]).astype(np.float32)
+            ),
+            "index": torch.tensor(int(index), dtype=torch.int64),
+        }
+
+
+BATCH_KEYS = ("template", "search", "size", "motion")
+TARGET_KEYS = ("search_box", "search_labels", "template_centers", "template_labels")
+
+
+def split_batch(sample: dict[str, torch.Tensor], device: str | torch.device = "cpu"):
+    """A collated sample dict -> ``(batch, targets, indices)`` on ``device``."""
+    batch = {k: sample[k].to(device) for k in BATCH_KEYS}
+    targets = {k: sample[k].to(device) for k in TARGET_KEYS}
+    return batch, targets, sample["index"]
+
+
+def load_tracklets(
+    dataset: str,
+    split: str,
+    *,
+    setting: str | None = None,
+    category: str | None = None,
+    preset: str = "default",
+    sensor: str = "hdl64",
+    world_seed: int = 0,
+    data_root: str | None = None,
+    trained_only: bool = True,
+):
+    """Tracklets of a split: the observed categories of ``setting`` (class-agnostic) or the one
+    ``category`` (class-specific); ``trained_only=False`` keeps the unseen ones too (validation).
+
+    Returns ``(tracklets, categories, root)``; raises ``ValueError`` when none are found.
+    """
+    from envs.data import KittiTracking, class_specific, get_setting
+
+    st = class_specific(category) if category else get_setting(setting)
+    cats = st.observed if trained_only else st.categories
+    if data_root:
+        root = data_root
+    elif dataset == "synthetic":
+        from envs.synthetic import ensure_world
+
+        root = str(ensure_world(preset=preset, sensor=sensor, seed=world_seed))
+    else:
+        raise ValueError("dataset=kitti needs data_root")
+    data = KittiTracking(root, split=split, categories=list(cats))
+    tracklets = [tr for tr in data.tracklets if len(tr) >= 2]
+    if not tracklets:
+        raise ValueError(
+            f"setting {st.name!r} has no tracklets of {', '.join(cats)} in the {split} split of "
+            f"{root}"
+        )
+    return tracklets, st, root
