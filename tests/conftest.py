@@ -8,6 +8,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
+import torch
 
 # Set before any test module imports envs, so every cache lookup in this run lands here.
 _OWN_CACHE = None
@@ -16,6 +17,16 @@ if "POINTTRACK_CACHE" not in os.environ:
     os.environ["POINTTRACK_CACHE"] = _OWN_CACHE
 
 SHARED_LABELS = Path(__file__).resolve().parents[1].parent / "shared" / "kitti-tracking-labels"
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """Torch on one thread for a module: small models on a 2-core machine run faster without
+    oversubscription."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="session")

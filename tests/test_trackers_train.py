@@ -14,21 +14,12 @@ EXTRA = {"p2b": {"hidden_channels": 64}, "bat": {"hidden_channels": 64},
          "gpt": {"node_channels": 32, "itc_channels": 32}}
 
 
-@pytest.fixture
-def one_thread():
-    """The machine is shared: one thread avoids oversubscription stalls."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 SLOW = pytest.mark.slow
 
 
 @pytest.mark.parametrize(
     "name", ["p2b", pytest.param("bat", marks=SLOW), pytest.param("gpt", marks=SLOW)])
-def test_one_batch_overfits(name, one_thread):
+def test_one_batch_overfits(name, one_torch_thread):
     torch.manual_seed(0)
     model = trackers.make(name, **TINY, **EXTRA[name]).train()
     batch, targets = toy_batch(2, seed=0, template_points=128, search_points=256)
