@@ -29,6 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from envs.metrics import THRESHOLDS_IOU, THRESHOLDS_M, OPEAccumulator
+from envs.plotting import pyplot, save_figure
 
 __all__ = [
     "evaluate",
@@ -338,10 +339,7 @@ def plot_curves(
 ) -> list[Path]:
     """Draw ``<prefix>success.png`` and ``<prefix>precision.png`` in ``out_dir``: one panel per
     group (mean, observed, unseen) with one curve per tracker; returns the paths."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -368,7 +366,5 @@ def plot_curves(
             ax.legend(fontsize=7)
         fig.tight_layout()
         path = out / f"{prefix}{key}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(save_figure(fig, path, 110))
     return paths

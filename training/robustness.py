@@ -45,6 +45,7 @@ import numpy as np
 # light imports only: `pointtrack --help` imports the eval command, which imports this module
 # (gymnasium, torch via envs.geometry, and the weather wrapper are imported where used)
 from envs.metrics import robustness_metrics
+from envs.plotting import pyplot, save_figure
 from envs.weather.levels import KINDS, LEVELS, check_kind, check_level, describe
 
 __all__ = [
@@ -349,10 +350,7 @@ def plot_success_vs_level(results: dict[str, Any] | Sequence[dict[str, Any]], pa
                           metric: str = "success") -> Path:
     """One panel per weather kind: Success (or Precision) against level (0 = clean), one line per
     category and the mean, per tracker."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     if isinstance(results, dict):
         results = [results]
@@ -376,20 +374,13 @@ def plot_success_vs_level(results: dict[str, Any] | Sequence[dict[str, Any]], pa
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, 110)
 
 
 def plot_analysis(result: dict[str, Any], path: str | Path) -> Path:
     """Fig. 3 layout: rows target distance / template corruption / target corruption, one column
     per weather kind, mean IoU change per bin, one line per level."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     kinds = result["kinds"]
     rows = (("distance", "target distance (m)"), ("template", "template Hausdorff (m)"),
@@ -416,11 +407,7 @@ def plot_analysis(result: dict[str, Any], path: str | Path) -> Path:
             ax.grid(alpha=0.3)
             ax.legend(fontsize=6)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, 100)
 
 
 def save_weather(result: dict[str, Any], out_dir: str | Path) -> list[Path]:

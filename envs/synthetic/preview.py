@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.geometry import box_corners
+from envs.plotting import pyplot, save_figure
 
 __all__ = ["frame_boxes", "save_preview"]
 
@@ -56,10 +57,7 @@ def save_preview(
         bev_range: half-width in metres of the bird's-eye window (x from -5 to ``2 * range``).
         dpi: resolution.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from envs.data.kitti import read_scan, scan_path
 
@@ -156,8 +154,4 @@ def save_preview(
     ax3.view_init(elev=30, azim=200)
     ax3.set_title("3D view (colour: intensity)")
     fig.tight_layout()
-    out_png = Path(out_png)
-    out_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=dpi)
-    plt.close(fig)
-    return out_png
+    return save_figure(fig, out_png, dpi)

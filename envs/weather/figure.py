@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.plotting import pyplot, save_figure
 from envs.weather.levels import KINDS, describe
 from envs.weather.wrapper import WeatherTransform
 
@@ -93,10 +94,7 @@ def levels_figure(scan: np.ndarray, path: str | Path, boxes=(), scene: str = "00
     returns (at their clean position) orange. The generator is the one
     :class:`WeatherTransform` uses for this scene and frame, so the panels show exactly what the
     env serves."""
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     levels = (1, 3, 5)
     r_in = np.linalg.norm(scan[:, :3], axis=1)
@@ -140,11 +138,7 @@ def levels_figure(scan: np.ndarray, path: str | Path, boxes=(), scene: str = "00
                  "toward the sensor (fog / rain / snow scatter), orange = lost; blue = target box",
                  fontsize=9)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, 80)
 
 
 def main(argv: list[str] | None = None) -> None:
