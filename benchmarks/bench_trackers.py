@@ -2,12 +2,15 @@
 farthest-point sampling / ball query against naive references.
 
     python benchmarks/bench_trackers.py [--quick] [--threads 2] [--device cpu|cuda]
+                                        [--env-steps 300]
 
 Inputs are synthetic (``trackers.toy.toy_batch``: a box-shaped target on a ground plane, the
 contract's 512 / 1024 points). Forward times are eval mode under ``torch.inference_mode``;
 "act" adds observation validation and the numpy round trip. The machine's load average is
 printed because other processes share the CPU; "CPU" is this process's CPU time per call (all
-threads), which contention inflates far less than wall time.
+threads), which contention inflates far less than wall time. ``--env-steps N`` also times
+``act`` on N observations of the synthetic env (``preset="small"``, test split, KITTI-1 setting;
+the intended use: padded templates, sparse neighbourhoods), each tracker acting on its own.
 """
 
 from __future__ import annotations
@@ -73,12 +76,33 @@ def naive_ball_query(radius: float, k: int, xyz: torch.Tensor, centres: torch.Te
     return out
 
 
+def env_act_ms(model, steps: int) -> float:
+    """Median wall milliseconds of ``model.act`` over ``steps`` synthetic-env observations
+    (the tracker's own actions drive the episodes; env time excluded)."""
+    from envs.tracking_env import make_synthetic_env
+
+    env = make_synthetic_env(preset="small", split="test", setting="kitti-1")
+    obs, _ = env.reset(seed=0)
+    times = []
+    for _ in range(steps):
+        t = time.perf_counter()
+        action = model.act(obs)
+        times.append(time.perf_counter() - t)
+        obs, _, terminated, truncated, _ = env.step(action)
+        if terminated or truncated:
+            obs, _ = env.reset()
+    times.sort()
+    return times[len(times) // 2] * 1e3
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions, batch 8 not 32")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt"])
+    parser.add_argument("--env-steps", type=int, default=0,
+                        help="also time act() on this many synthetic-env observations")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -114,12 +138,17 @@ def main(argv: list[str] | None = None) -> int:
             m.loss(m(b), t)["total"].mean().backward()
 
         row["train_ms_b8"] = timeit(step, max(1, reps // 3), sync=sync) * 1e3
+        model.eval()
+        env_note = ""
+        if args.env_steps > 0:
+            row["env_act_ms"] = env_act_ms(model, args.env_steps)
+            env_note = f" | act on env obs {row['env_act_ms']:6.1f} ms"
         results[name] = row
         print(f"{name:4s} params {params / 1e6:.2f} M | batch 1: {row['ms_b1']:7.1f} ms "
               f"(CPU {row['cpu_ms_b1']:6.1f} ms, {row['fps_b1']:5.1f} frames/s) | "
               f"batch {big}: {row[f'ms_b{big}']:8.1f} ms "
               f"({row[f'fps_b{big}']:6.1f} frames/s) | act(1 obs) {row['act_ms']:6.1f} ms | "
-              f"train step b8 {row['train_ms_b8']:7.1f} ms")
+              f"train step b8 {row['train_ms_b8']:7.1f} ms{env_note}")
     if "p2b" in results:
         base = results["p2b"]["fps_b1"]
         print("frames/s at batch 1 relative to P2B: "

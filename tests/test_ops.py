@@ -135,6 +135,39 @@ def test_hash_order_is_invariant_to_input_order():
     assert 30 < (first_half < 128).sum(1).float().mean() < 98
 
 
+def _hash_key_reference(xyz: torch.Tensor, seed: int) -> torch.Tensor:
+    """hash_order's 63-bit coordinate key, one chain at a time in plain Python integers."""
+    keys = []
+    for point in xyz.reshape(-1, 3).tolist():
+        q = [round(v / 1e-4) & 0xFFFFFFFF for v in point]
+        h1 = (seed * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF
+        h2 = (seed * 0x85EBCA77 + 0x165667B1) & 0xFFFFFFFF
+        for v in q:
+            h1 = _fmix32(h1 ^ v)
+            h2 = _fmix32(h2 ^ (v * 0x27D4EB2F) % 2**32)
+        keys.append(((h1 >> 1) << 32) | h2)
+    return torch.tensor(keys).view(xyz.shape[:-1])
+
+
+def _fmix32(h: int) -> int:
+    h ^= h >> 16
+    h = (h * 0x85EBCA6B) % 2**32
+    h ^= h >> 13
+    h = (h * 0xC2B2AE35) % 2**32
+    return h ^ (h >> 16)
+
+
+def test_hash_order_sorts_by_the_documented_key():
+    """Distinct points (occurrence rank 0 everywhere): the order is by the rank-spread key,
+    whose coordinate part is the two-chain murmur hash computed here in plain integers."""
+    xyz = _points(b=2, n=64, seed=12, scale=4.0)
+    key = _hash_key_reference(xyz.double(), seed=5)
+    spread = ops._mix32(ops._mix32((key & 0xFFFFFFFF) ^ ops._mul32(torch.ones_like(key),
+                                                                     0x9E3779B1)) ^ (key >> 32))
+    final = ((spread >> 1) << 31) | (key >> 32)
+    assert torch.equal(ops.hash_order(xyz, seed=5), final.argsort(dim=1, stable=True))
+
+
 def test_mul32_exact():
     g = torch.Generator().manual_seed(0)
     h = torch.randint(0, 2**32, (500,), dtype=torch.long, generator=g)
@@ -165,3 +198,42 @@ def test_hash_order_spreads_duplicates_like_a_random_permutation():
     assert torch.unique(prefix, dim=0).shape[0] >= 40  # a random prefix gives ~48 on average
     perm = torch.randperm(512, generator=g)
     assert torch.equal(prefix, ops.gather(pts[:, perm], ops.hash_order(pts[:, perm])[:, :64])[0])
+
+
+@pytest.mark.parametrize("gain", [0, 10**9])  # always the x-window / always every point
+@pytest.mark.parametrize("radius,k", [(0.15, 8), (0.3, 32), (10.0, 4), (0.05, 2)])
+def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, gain, monkeypatch):
+    monkeypatch.setattr(ops, "_WINDOW_GAIN", gain)
+    xyz = _points(n=200, seed=4)
+    xyz[:, 100:130] = xyz[:, 60:90]  # copies: equal x values in the sorted window
+    centres = torch.cat([xyz[:, :40], torch.full((2, 2, 3), 5.0), torch.full((2, 1, 3), -5.0)],
+                        dim=1)  # 3 without a hit, beyond either end of the x range
+    idx, count = ops.ball_query(radius, k, xyz, centres, return_count=True)
+    group, point = ops.ball_query_pairs(radius, k, xyz, centres)
+    b, m = count.shape
+    valid = torch.arange(k) < count.clamp(min=1)[..., None]
+    expected_group = torch.arange(b * m).view(b, m, 1).expand(b, m, k)[valid]
+    expected_point = (idx + (torch.arange(b) * 200).view(b, 1, 1))[valid]
+    assert torch.equal(group, expected_group) and torch.equal(point, expected_point)
+
+
+def test_first_copy_matches_brute_force():
+    g = torch.Generator().manual_seed(5)
+    xyz = torch.randint(0, 3, (2, 60, 3), generator=g).float() * 0.5
+    first = ops.first_copy(xyz)
+    for b in range(2):
+        for j in range(60):
+            expected = min(i for i in range(60) if torch.equal(xyz[b, i], xyz[b, j]))
+            assert first[b, j] == expected
+    distinct = torch.rand(1, 50, 3, generator=g)
+    assert torch.equal(ops.first_copy(distinct)[0], torch.arange(50))
+
+
+def test_pairwise_sqdist_in_place_path_keeps_gradients():
+    a = torch.rand(2, 5, 3, requires_grad=True)
+    b = torch.rand(2, 7, 3)
+    d = ops.pairwise_sqdist(a, b)
+    d.sum().backward()
+    with torch.no_grad():
+        torch.testing.assert_close(ops.pairwise_sqdist(a, b), d, rtol=0, atol=0)
+    assert a.grad is not None and torch.isfinite(a.grad).all()

@@ -386,3 +386,116 @@ def test_p2b_drops_repeated_template_seeds_exactly():
     torch.testing.assert_close(fast, fusion(t_xyz[:1], t_feat[:1], s_feat[:1]))
     torch.testing.assert_close(fast, fusion.forward_naive(t_xyz[:1], t_feat[:1], s_feat[:1]),
                                rtol=1e-4, atol=1e-4)
+
+
+# ---------------------------------------------------------------- eval fast paths vs reference
+
+
+def reference_outputs(model, batch):
+    """The plain path of ``model`` (eval): dense ball-query groups (no ragged groups, no skipping
+    of copied points), the dense proposal aggregation, P2B's explicit pair concatenation."""
+    import copy
+
+    ref = copy.deepcopy(model).eval()
+    for layer in ref.backbone.layers:
+        layer.ragged_eval = False
+    ref.head.ragged_eval = False
+    if isinstance(ref.fusion, P2BFusion):
+        ref.fusion.forward = ref.fusion.forward_naive
+    with torch.no_grad():
+        return ref(batch)
+
+
+def padded_batch(batch, template_distinct=(40, 512), search_distinct=(150, 1024), seed=0):
+    """Env-like observations: small clouds padded to the contract sizes with copies of their
+    points (first row: sparse; second row left dense)."""
+    g = torch.Generator().manual_seed(seed)
+    out = {k: v.clone() for k, v in batch.items()}
+    for key, distinct in (("template", template_distinct), ("search", search_distinct)):
+        n_keep, n = distinct
+        copies = torch.randint(0, n_keep, (n,), generator=g)
+        copies[:n_keep] = torch.arange(n_keep)
+        out[key][0] = out[key][0, copies[torch.randperm(n, generator=g)]]
+    return out
+
+
+def assert_outputs_close(out, ref, atol=1e-4):
+    for key in ("proposals", "scores", "Z", "seed_logits"):
+        torch.testing.assert_close(out[key], ref[key], rtol=0, atol=atol, msg=key)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_eval_fast_paths_equal_the_plain_path_random_init(name, toy):
+    torch.manual_seed(11)
+    model = trackers.make(name).eval()
+    for batch in (toy[0], padded_batch(toy[0])):
+        with torch.no_grad():
+            out = model(batch)
+        assert_outputs_close(out, reference_outputs(model, batch))
+
+
+@pytest.mark.parametrize("checkpoint", [f"{n}-kitti1-{w}" for n in NAMES for w in "uw"])
+def test_eval_fast_paths_equal_the_plain_path_shipped_checkpoints(checkpoint, toy):
+    if checkpoint not in trackers.available():
+        pytest.skip(f"{checkpoint} is not shipped")
+    model = trackers.load(checkpoint).eval()
+    for batch in (toy[0], padded_batch(toy[0], (12, 512), (60, 1024), seed=1)):
+        with torch.no_grad():
+            out = model(batch)
+        assert_outputs_close(out, reference_outputs(model, batch))
+
+
+def test_p2b_knot_path_equals_dense_and_naive(monkeypatch):
+    """Trained-like similarity ranges (random features): many knots; both the knot path and its
+    dense fallback match the explicit concatenation."""
+    import trackers.p2b as p2b
+
+    torch.manual_seed(12)
+    fusion = P2BFusion(32, 48, 40)
+    fusion.train()
+    fusion(torch.randn(2, 16, 3), torch.randn(2, 16, 32), torch.randn(2, 24, 32))  # BN stats
+    fusion.eval()
+    t_xyz, t_feat, s_feat = torch.randn(2, 16, 3), torch.randn(2, 16, 32), torch.randn(2, 96, 32)
+    s_feat[1, :48] = s_feat[1, 48:]  # repeated search features: repeated knots
+    expected = fusion.forward_naive(t_xyz, t_feat, s_feat)
+    calls = []
+    knots = p2b.knots
+    monkeypatch.setattr(p2b, "knots", lambda *a: calls.append(knots(*a)) or calls[-1])
+    for fraction in (1.0, 0.0):  # knots always affordable / never: the dense fallback
+        monkeypatch.setattr(p2b, "MAX_KNOT_FRACTION", fraction)
+        with torch.no_grad():
+            got = fusion(t_xyz, t_feat, s_feat)
+        torch.testing.assert_close(got, expected, rtol=0, atol=1e-4)
+    assert calls[0] is not None and calls[0][0].shape[-1] > 2 and calls[1] is None
+    knots_t = calls[0][0]
+    assert (knots_t[..., 1:] >= knots_t[..., :-1]).all()  # sorted
+
+
+def test_p2b_knots_are_the_kinks_of_the_tfa_mlp():
+    """Between consecutive knots the TFA MLP's last pre-activation is affine in the similarity."""
+    from trackers.p2b import knots, pre_activation
+
+    torch.manual_seed(13)
+    fusion = P2BFusion(8, 16, 16).eval()
+    a, w = fusion.first_layer(torch.randn(1, 4, 3), torch.randn(1, 4, 8))
+    lo, hi = torch.full((1, 4), -1.0), torch.ones(1, 4)
+    with torch.no_grad():
+        t, values = knots(fusion.mlp, a, w, lo, hi, max_knots=10_000)
+        mid = (t[..., 1:] + t[..., :-1]) / 2
+        dense = pre_activation(fusion.mlp, a, w, mid, 2)
+    torch.testing.assert_close(dense, (values[:, :, 1:] + values[:, :, :-1]) / 2, rtol=0,
+                               atol=1e-5)
+
+
+def test_folded_batchnorm_cache_follows_weight_updates(toy):
+    torch.manual_seed(14)
+    model = tiny("p2b").eval()
+    with torch.no_grad():
+        before = model(toy[0])["scores"]
+        for p in model.head.proposal.parameters():
+            p.mul_(1.5)
+        model.head.proposal.norms[0].running_var.mul_(2.0)
+        after = model(toy[0])["scores"]
+    assert not torch.allclose(before, after)
+    torch.testing.assert_close(after, reference_outputs(model, toy[0])["scores"], rtol=0,
+                               atol=1e-5)

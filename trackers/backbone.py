@@ -18,7 +18,9 @@ grouped pre-activation is ``gather - centre`` - the same function with ``k x`` f
 multiplications. In eval mode groups are evaluated ragged: the padding slots of a ball query repeat
 the first hit, whose features cannot change a max, so only the real hits go through the MLP (same
 result; training keeps the dense layout so BatchNorm statistics match the reference, unless
-``ragged_train=True``).
+``ragged_train=True``). Padded clouds (the env repeats the points of small clouds) are evaluated
+once per distinct point in eval: copies of a centre share its features, copies of a neighbour
+its MLP value (:meth:`SetAbstraction._distinct`).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ import torch
 from torch import nn
 
 from trackers import ops
-from trackers.layers import MLP
+from trackers.layers import MLP, grouped_max
 
 __all__ = ["Backbone", "BackboneConfig", "SetAbstraction"]
 
@@ -85,30 +87,36 @@ class SetAbstraction(nn.Module):
         per_centre = centres @ wx.t()
         return per_point, per_centre
 
-    def forward(self, xyz: torch.Tensor, feats: torch.Tensor | None,
-                n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, xyz: torch.Tensor, feats: torch.Tensor | None, n: int,
+                first: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``first (B, N)``: :func:`trackers.ops.first_copy` of ``xyz`` (ragged path only), to
+        evaluate each distinct centre and neighbour once."""
         centres = xyz[:, :n]
-        idx, count = ops.ball_query(self.radius, self.k, xyz, centres, return_count=True)
         per_point, per_centre = self.point_terms(xyz, feats, centres)
         if self.ragged_train if self.training else self.ragged_eval:
-            return centres, self._ragged(per_point, per_centre, idx, count)
+            group, point = ops.ball_query_pairs(self.radius, self.k, xyz, centres)
+            if first is None:
+                return centres, grouped_max(self.mlp, per_point, per_centre, group, point)
+            return centres, self._distinct(per_point, per_centre, group, point, first)
+        idx = ops.ball_query(self.radius, self.k, xyz, centres)
         pre = ops.group(per_point, idx) - per_centre[:, :, None, :]  # (B, n, k, C1)
         return centres, self.mlp.forward_from(0, pre).amax(dim=2)
 
-    def _ragged(self, per_point: torch.Tensor, per_centre: torch.Tensor, idx: torch.Tensor,
-                count: torch.Tensor) -> torch.Tensor:
-        """Max over real hits only: in eval the same values as the dense path."""
-        b, n, k = idx.shape
-        npts, c1 = per_point.shape[1], per_point.shape[2]
-        valid = torch.arange(k, device=idx.device) < count.clamp(min=1)[..., None]  # (B, n, k)
-        group_id = torch.arange(b * n, device=idx.device).view(b, n, 1).expand(b, n, k)[valid]
-        batch_off = (torch.arange(b, device=idx.device) * npts).view(b, 1, 1)
-        point_id = (idx + batch_off)[valid]
-        pre = per_point.reshape(-1, c1)[point_id] - per_centre.reshape(-1, c1)[group_id]
-        h = self.mlp.forward_from(0, pre)  # (P, C) >= 0 after the final ReLU
-        out = h.new_zeros(b * n, h.shape[-1])
-        out.scatter_reduce_(0, group_id[:, None].expand(-1, h.shape[-1]), h, "amax")
-        return out.view(b, n, -1)
+    def _distinct(self, per_point: torch.Tensor, per_centre: torch.Tensor, group: torch.Tensor,
+                  point: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+        """:func:`grouped_max` over first copies only, then copied to the other copies.
+
+        Copies of a point have equal coordinates and (same ball, same hits) equal features, so
+        a copy of a centre has the same group and a copy of a hit the same MLP input; the first
+        copy of a hit is itself a hit, earlier in index order, so it is among the kept slots.
+        """
+        b, n = per_centre.shape[:2]
+        npts = per_point.shape[1]
+        own = first == torch.arange(npts, device=first.device)  # (B, N): first copies
+        keep = own.flatten()[point] & own[:, :n].flatten()[group]
+        out = grouped_max(self.mlp, per_point, per_centre, group[keep], point[keep])
+        src = first[:, :n] + (torch.arange(b, device=first.device) * n)[:, None]
+        return out.flatten(0, 1).index_select(0, src.flatten()).view(b, n, -1)
 
 
 class Backbone(nn.Module):
@@ -142,8 +150,14 @@ class Backbone(nn.Module):
             order = torch.gather(order, 1, torch.cat([first, rest_idx], dim=1))
         xyz = ops.gather(points, order)
         feats = None
+        first = None
+        if not self.training and all(layer.ragged_eval for layer in self.layers):
+            first = ops.first_copy(xyz)
+            if bool((first == torch.arange(xyz.shape[1], device=xyz.device)).all()):
+                first = None  # no copies: nothing to skip
         n = points.shape[1]
         for layer in self.layers:
             n //= 2
-            xyz, feats = layer(xyz, feats, n)
+            # layer inputs are prefixes of xyz and a first copy precedes its copies
+            xyz, feats = layer(xyz, feats, n, None if first is None else first[:, :xyz.shape[1]])
         return xyz, self.out(feats), order[:, :n]

@@ -8,7 +8,8 @@ From the fused search features ``Z (B, M, D)`` at the search seeds ``xyz (B, M, 
   sampling of votes) are cluster centres; each clusters the votes within ``cluster_radius``
   (ball query, ``cluster_votes`` slots); ``MLP [3+1+D, V, V, V]`` on ``[vote_xyz - centre;
   sigmoid(score); vote_feature]``, max over the cluster, then ``MLP [V, V, V, 5]`` -> centre
-  offset (3), yaw, objectness logit.
+  offset (3), yaw, objectness logit. In eval mode the cluster max runs over the real members
+  only (:func:`trackers.layers.grouped_max`; the padding slots repeat a member: same max).
 
 A proposal is ``(x, y, z, yaw)`` of the target box in the search (reference-box) frame, which is
 exactly the env's action ``(dx, dy, dz, dyaw)``. Internally the yaw output is in degrees by
@@ -32,7 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from trackers import ops
-from trackers.layers import MLP
+from trackers.layers import MLP, grouped_max
 
 __all__ = ["HeadConfig", "VotingHead", "head_losses", "smooth_l1"]
 
@@ -71,6 +72,7 @@ class VotingHead(nn.Module):
         self.aggregate = MLP([3 + 1 + d, v, v, v])
         self.proposal = MLP([v, v, v, 5], last_activation=False)
         self.yaw_scale = math.pi / 180.0 if config.yaw_unit == "deg" else 1.0
+        self.ragged_eval = True  # eval: cluster max over real members only (tests switch off)
 
     def forward(self, xyz: torch.Tensor, z: torch.Tensor) -> dict[str, torch.Tensor]:
         m = xyz.shape[1]
@@ -80,15 +82,19 @@ class VotingHead(nn.Module):
         vote = seed_feat + self.vote(seed_feat)  # (B, M, 3 + D)
         vote_xyz, vote_feat = vote[..., :3], vote[..., 3:]
         centres = vote_xyz[:, :n_prop]  # (B, P, 3)
-        idx = ops.ball_query(self.config.cluster_radius, self.config.cluster_votes,
-                             vote_xyz, centres)  # (B, P, k)
         # first aggregation layer decomposed: per vote W [xyz; s; f] + b, per centre W_x c
         w, b = self.aggregate.linear_params(0)
         per_vote = F.linear(torch.cat([vote_xyz, torch.sigmoid(seed_logits)[..., None],
                                        vote_feat], dim=-1), w, b)
         per_centre = centres @ w[:, :3].t()
-        pre = ops.group(per_vote, idx) - per_centre[:, :, None, :]  # (B, P, k, V)
-        cluster = self.aggregate.forward_from(0, pre).amax(dim=2)  # (B, P, V)
+        radius, k = self.config.cluster_radius, self.config.cluster_votes
+        if self.training or not self.ragged_eval:  # dense: BatchNorm statistics over every slot
+            idx = ops.ball_query(radius, k, vote_xyz, centres)  # (B, P, k)
+            pre = ops.group(per_vote, idx) - per_centre[:, :, None, :]  # (B, P, k, V)
+            cluster = self.aggregate.forward_from(0, pre).amax(dim=2)  # (B, P, V)
+        else:  # the real cluster members only: the same max, less work
+            group, point = ops.ball_query_pairs(radius, k, vote_xyz, centres)
+            cluster = grouped_max(self.aggregate, per_vote, per_centre, group, point)
         raw = self.proposal(cluster)  # (B, P, 5)
         box_raw = torch.cat([centres + raw[..., :3], raw[..., 3:4]], dim=-1)  # yaw in yaw_unit
         proposals = torch.cat([box_raw[..., :3], box_raw[..., 3:4] * self.yaw_scale], dim=-1)

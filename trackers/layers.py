@@ -10,6 +10,9 @@ function up to float rounding. The first layer can be evaluated separately
 (:meth:`MLP.linear_params` + :meth:`MLP.forward_from`) so callers can decompose it over the parts
 of a concatenated input (the linear-first-layer trick used by the set abstraction, the P2B fusion,
 the GPT edge convolution and the proposal aggregation).
+
+:func:`grouped_max` evaluates ``max over a group of MLP(pre)`` on the real members of ball-query
+groups only (ragged), for the set abstraction and the proposal aggregation in eval mode.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["MLP"]
+__all__ = ["MLP", "grouped_max"]
 
 
 class MLP(nn.Module):
@@ -41,6 +44,8 @@ class MLP(nn.Module):
             nn.BatchNorm1d(self.channels[i + 1]) if self.activated[i] else nn.Identity()
             for i in range(n)
         )
+        # layer -> (key of the source tensors, folded weight and bias); see linear_params
+        self._folded: dict[int, tuple[tuple, tuple[torch.Tensor, torch.Tensor]]] = {}
 
     @property
     def in_channels(self) -> int:
@@ -51,11 +56,30 @@ class MLP(nn.Module):
         return self.channels[-1]
 
     def linear_params(self, i: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Weight ``(c_out, c_in)`` and bias of layer ``i``; in eval mode with BatchNorm folded."""
+        """Weight ``(c_out, c_in)`` and bias of layer ``i``; in eval mode with BatchNorm folded.
+
+        Without autograd the folded pair is cached, keyed by the version counters of the
+        tensors it is made of (any in-place update - an optimiser step, ``load_state_dict`` -
+        refolds): a forward at batch 1 would otherwise spend a good part of its time folding.
+        """
         lin = self.linears[i]
         norm = self.norms[i]
         if self.training or not isinstance(norm, nn.BatchNorm1d):
             return lin.weight, lin.bias
+        if torch.is_grad_enabled():
+            return self._fold(i)
+        sources = (lin.weight, lin.bias, norm.weight, norm.bias, norm.running_mean,
+                   norm.running_var)
+        key = tuple((id(t), t._version, t.device, t.dtype) if t is not None else None
+                    for t in sources)
+        cached = self._folded.get(i)
+        if cached is None or cached[0] != key:
+            cached = self._folded[i] = (key, self._fold(i))
+        return cached[1]
+
+    def _fold(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Layer ``i``'s Linear with its BatchNorm (running statistics) folded in."""
+        lin, norm = self.linears[i], self.norms[i]
         scale = norm.weight * torch.rsqrt(norm.running_var + norm.eps)
         shift = norm.bias - norm.running_mean * scale
         if lin.bias is not None:
@@ -83,3 +107,24 @@ class MLP(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         w, b = self.linear_params(0)
         return self.forward_from(0, F.linear(x, w, b))
+
+
+def grouped_max(mlp: MLP, per_point: torch.Tensor, per_centre: torch.Tensor,
+                group: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+    """``max_j mlp.forward_from(0, per_point_j - per_centre_i)`` over the members ``j`` of each
+    group ``i``: ``per_point (B, N, C1)``, ``per_centre (B, M, C1)``, pairs ``group (P,)`` (flat
+    index ``b * M + m``, every group present) and ``point (P,)`` (flat ``b * N + j``, as
+    :func:`trackers.ops.ball_query_pairs` gives) -> ``(B, M, C)``; the MLP must end in a ReLU.
+
+    A ball query pads its slots with copies of the first hit, which cannot change a max: over the
+    real hits only, the same values as the dense ``(B, M, k, C1)`` evaluation with less work
+    (in training BatchNorm statistics would differ, so callers use it in eval unless asked).
+    """
+    b, m, c1 = per_centre.shape
+    # index_select, not [...]: its backward is several times faster on CPU (see ops.gather)
+    pre = (per_point.reshape(-1, c1).index_select(0, point)
+           - per_centre.reshape(-1, c1).index_select(0, group))
+    h = mlp.forward_from(0, pre)  # (P, C) >= 0 after the final ReLU
+    out = h.new_zeros(b * m, h.shape[-1])
+    out.scatter_reduce_(0, group[:, None].expand(-1, h.shape[-1]), h, "amax")
+    return out.view(b, m, -1)
