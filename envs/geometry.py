@@ -12,6 +12,7 @@ the trackers live at the end of the module (suffix ``_torch``).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -27,6 +28,7 @@ __all__ = [
     "center_distance",
     "iou_3d",
     "iou_bev",
+    "iou_pair",
     "offset_between",
     "points_in_box",
     "rotation_z",
@@ -411,9 +413,10 @@ def _edges_term_1(
     return frac_sum, cross_sum
 
 
-def _iou_single(a: np.ndarray, b: np.ndarray, vertical: bool) -> float:
-    """Lean path for one pair: plain Python floats, no array temporaries."""
-    pa, pb = a.tolist(), b.tolist()
+def iou_pair(pa: Sequence[float], pb: Sequence[float], vertical: bool = True) -> float:
+    """:func:`iou_3d` (``vertical``) or :func:`iou_bev` of one pair of boxes given as 7 Python
+    floats each -> a float: the lean path of two 1-D boxes (plain Python floats, no array
+    temporaries), for callers that already hold the boxes as lists (the env's step)."""
     if not math.isfinite(sum(pa) + sum(pb)):
         return math.nan
     area_a = pa[3] * pa[4]
@@ -457,7 +460,7 @@ def _iou(a: np.ndarray, b: np.ndarray, vertical: bool) -> np.ndarray:
     if a.shape[-1] != 7 or b.shape[-1] != 7:
         raise ValueError(f"boxes must have shape (..., 7); got {a.shape} and {b.shape}")
     if a.ndim == 1 and b.ndim == 1:
-        return np.float64(_iou_single(a, b, vertical))
+        return np.float64(iou_pair(a.tolist(), b.tolist(), vertical))
     a, b = np.broadcast_arrays(a, b)
     shape = a.shape[:-1]
     a = a.reshape(-1, 7)

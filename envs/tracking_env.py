@@ -22,15 +22,19 @@ import numpy as np
 from gymnasium import spaces
 
 from envs.data.tracklet import Tracklet
-from envs.geometry import iou_3d, iou_bev
+from envs.geometry import iou_bev, iou_pair
 from envs.observation import (
     SEARCH_OFFSET_M,
     SEARCH_SCALE,
     SEARCH_SIZE,
     TEMPLATE_SCALE,
     TEMPLATE_SIZE,
+    box_frame,
     crop_box_frame,
-    resample,
+    crop_extents,
+    crop_parts,
+    extent_threshold,
+    resample_into,
 )
 
 __all__ = [
@@ -60,6 +64,9 @@ POINT_BOUND_M = 100.0
 smaller than ~150 m."""
 SIZE_BOUND_M = 100.0
 MOTION_BOUND_M = 100.0
+TEMPLATE_ENLARGEMENT = (TEMPLATE_SCALE, 0.0)
+SEARCH_ENLARGEMENT = (SEARCH_SCALE, SEARCH_OFFSET_M)
+"""``(scale, offset_m)`` of the template and search crops."""
 ROUND_OFF = 1e-9
 """IoUs above ``1 - ROUND_OFF`` are reported as 1 and centre errors below it (metres) as 0: the
 exact ground-truth offset reproduces the ground-truth box only up to float round-off (~1e-15),
@@ -127,53 +134,60 @@ class _Corridor:
         for (a0, b0), (a1, b1) in zip(lo, hi, strict=True):
             occ[a0 - self.ix0 : a1 - self.ix0 + 1, b0 - self.iy0 : b1 - self.iy0 + 1] = True
         self.occupancy = occ
-        flat = occ.reshape(-1)
-        # compact id of every occupied cell (row-major); -1 elsewhere. A query's cells are all
-        # occupied, so each row of it is a contiguous run of compact ids.
-        self.compact = np.full(flat.size, -1, dtype=np.int64)
-        self.compact[flat] = np.arange(int(flat.sum()))
-        self.num_cells = int(flat.sum())
         # summed-area table (Python lists: a query reads 4 entries, no numpy call)
         sat = np.zeros((self.nx + 1, self.ny + 1), dtype=np.int64)
         sat[1:, 1:] = occ.cumsum(0).cumsum(1)
         self._sat = sat.tolist()
         # rough footprint (the SAT's Python ints ~32 B each)
-        self.nbytes = occ.nbytes + self.compact.nbytes + 40 * sat.size
+        self.nbytes = occ.nbytes + 40 * sat.size
 
-    def cell_range(self, box: np.ndarray, scale: float, offset_m: float):
-        """Corridor-local cells ``(x0, x1, y0, y1)`` covering the enlarged ``box``'s xy bound,
-        or ``None`` when part of it lies outside the corridor."""
+    def cell_ranges(
+        self, box: np.ndarray, enlargements: Sequence[tuple[float, float]]
+    ) -> list[tuple[int, int, int, int] | None]:
+        """For every ``(scale, offset_m)``: the corridor-local cells ``(x0, x1, y0, y1)``
+        covering the xy bound of ``box`` so enlarged, or ``None`` when part of it lies outside
+        the corridor."""
         bx, by, _, bl, bw, _, yaw = box.tolist()
-        hl = 0.5 * scale * bl + offset_m
-        hw = 0.5 * scale * bw + offset_m
         c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
-        ex = c * hl + s * hw + 1e-3  # pad: a bound only; the exact crop follows
-        ey = s * hl + c * hw + 1e-3
-        x0 = math.floor((bx - ex) / self.cell) - self.ix0
-        x1 = math.floor((bx + ex) / self.cell) - self.ix0
-        y0 = math.floor((by - ey) / self.cell) - self.iy0
-        y1 = math.floor((by + ey) / self.cell) - self.iy0
-        if x0 < 0 or y0 < 0 or x1 >= self.nx or y1 >= self.ny:
-            return None
-        sat = self._sat
-        occupied = sat[x1 + 1][y1 + 1] - sat[x0][y1 + 1] - sat[x1 + 1][y0] + sat[x0][y0]
-        if occupied != (x1 - x0 + 1) * (y1 - y0 + 1):
-            return None
-        return x0, x1, y0, y1
+        sat, cell, out = self._sat, self.cell, []
+        for scale, offset_m in enlargements:
+            hl = 0.5 * scale * bl + offset_m
+            hw = 0.5 * scale * bw + offset_m
+            ex = c * hl + s * hw + 1e-3  # pad: a bound only; the exact crop follows
+            ey = s * hl + c * hw + 1e-3
+            x0 = math.floor((bx - ex) / cell) - self.ix0
+            x1 = math.floor((bx + ex) / cell) - self.ix0
+            y0 = math.floor((by - ey) / cell) - self.iy0
+            y1 = math.floor((by + ey) / cell) - self.iy0
+            inside = x0 >= 0 and y0 >= 0 and x1 < self.nx and y1 < self.ny
+            if inside:  # and every cell occupied
+                occupied = sat[x1 + 1][y1 + 1] - sat[x0][y1 + 1] - sat[x1 + 1][y0] + sat[x0][y0]
+                inside = occupied == (x1 - x0 + 1) * (y1 - y0 + 1)
+            out.append((x0, x1, y0, y1) if inside else None)
+        return out
 
 
 @dataclass
 class _FrameIndex:
     """Corridor points of one frame in canonical order (by cell, row-major; ties in scan
-    order), with the first point of every corridor cell."""
+    order), as coordinate rows (what :func:`envs.observation.box_frame` reads), with the first
+    point of every cell of the corridor's grid: the points of cells ``y0..y1`` of grid row
+    ``x`` are ``xyz[:, starts[x, y0] : starts[x, y1 + 1]]`` (``starts[x, ny]`` ends the row)."""
 
-    points: np.ndarray  # (M, 3) float32
-    starts: np.ndarray  # (num occupied cells + 1,) int32, by compact cell id
+    xyz: np.ndarray  # (3, M) float32
+    starts: np.ndarray  # (nx, ny + 1) int32
     target_points: int  # scan points inside the frame's ground-truth box
 
     @property
     def nbytes(self) -> int:
-        return self.points.nbytes + self.starts.nbytes
+        return self.xyz.nbytes + self.starts.nbytes
+
+
+BRIDGE_POINTS = 64
+"""Consecutive row runs of a corridor gather are joined when at most this many points lie
+between them: a separate run costs a slice and a concatenated piece (~1 us), a gathered point
+~20 ns of array work, and the points in between (cells outside the query) never pass the exact
+crop."""
 
 
 class _TrackletScans:
@@ -198,6 +212,8 @@ class _TrackletScans:
         self.frames: dict[int, _FrameIndex] = {}
         self.nbytes = 0 if corridor is None else corridor.nbytes
         self._full: OrderedDict[int, np.ndarray] = OrderedDict()  # last whole scans (fallback)
+        self._thresholds: dict[tuple[float, ...], np.ndarray] = {}
+        self.first_crop: np.ndarray | None = None  # frame 0's template crop, set by the env
 
     def scan(self, t: int) -> np.ndarray:
         """Whole (transformed) scan of the tracklet's ``t``-th frame ``(N, 4)`` float32."""
@@ -241,40 +257,78 @@ class _TrackletScans:
         iy -= cor.iy0
         inside = (ix >= 0) & (ix < cor.nx) & (iy >= 0) & (iy < cor.ny)
         key = np.where(inside, ix * cor.ny + iy, 0)
-        keep = inside & cor.occupancy.reshape(-1)[key]
+        keep = inside & cor.occupancy.reshape(-1)[key]  # queries never read other cells
         sel = np.flatnonzero(keep)
-        k = cor.compact[key[sel]]  # monotone in the cell key
-        perm = np.argsort(k, kind="stable")
-        points = np.ascontiguousarray(xyz[sel[perm]], dtype=np.float32)
-        starts = np.searchsorted(k[perm], np.arange(cor.num_cells + 1)).astype(np.int32)
+        key = key[sel]
+        perm = np.argsort(key, kind="stable")
+        rows = np.ascontiguousarray(xyz[sel[perm]].T, dtype=np.float32)
+        firsts = np.searchsorted(key[perm], np.arange(cor.nx * cor.ny + 1))
+        cells = np.arange(cor.nx)[:, None] * cor.ny + np.arange(cor.ny + 1)
+        starts = firsts[cells].astype(np.int32)
         gt = np.asarray(self.tracklet.boxes[t], dtype=np.float64)
-        target = len(crop_box_frame(points, gt)) if len(points) else 0
-        return _FrameIndex(points, starts, target)
+        target = len(crop_box_frame(rows.T, gt)) if rows.shape[1] else 0
+        return _FrameIndex(rows, starts, target)
 
     def _full_crop(self, t: int, box: np.ndarray, scale: float, offset_m: float) -> np.ndarray:
         return crop_canonical(self.scan(t)[:, :3], box, scale, offset_m, self.cell)
 
-    def crop(
-        self, t: int, box: np.ndarray, scale: float, offset_m: float
-    ) -> tuple[np.ndarray, bool]:
-        """Points of frame ``t`` in ``box`` enlarged, in its box frame ``(M, 3)`` float32
-        (canonical order), and whether the corridor served it."""
+    def crops(
+        self, box: np.ndarray, frames: Sequence[int], enlargements: tuple[tuple[float, float], ...]
+    ) -> tuple[list[np.ndarray], int]:
+        """The points of every frame ``frames[i]`` in ``box`` enlarged by ``enlargements[i]``
+        ``(scale, offset_m)``, in its box frame ``(M, 3)`` float32 (canonical order); and how
+        many of them the corridor served. The corridor's crops share one gather, one box-frame
+        transform and one selection (numpy's per-call cost dominates these small sets)."""
         if self.corridor is None:
-            return self._full_crop(t, box, scale, offset_m), False
-        cells = self.corridor.cell_range(box, scale, offset_m)
-        if cells is None:
-            return self._full_crop(t, box, scale, offset_m), False
-        idx = self.index(t)
-        x0, x1, y0, y1 = cells
-        ny, starts, cid = self.corridor.ny, idx.starts, self.corridor.compact
-        if x0 == x1:
-            pts = idx.points[starts[cid[x0 * ny + y0]] : starts[cid[x0 * ny + y1] + 1]]
+            cells = [None] * len(frames)
         else:
-            rows = np.arange(x0 * ny, x1 * ny + 1, ny)
-            lo = starts[cid[rows + y0]].tolist()
-            hi = starts[cid[rows + y1] + 1].tolist()
-            pts = np.concatenate([idx.points[a:b] for a, b in zip(lo, hi, strict=True)])
-        return crop_box_frame(pts, box, scale, offset_m), True
+            cells = self.corridor.cell_ranges(box, enlargements)
+        out: list[np.ndarray | None] = [None] * len(frames)
+        pieces: list[np.ndarray] = []
+        served: list[int] = []  # requests the corridor serves, in gathering order
+        widths: list[int] = []  # their numbers of gathered points
+        for i, (t, rect) in enumerate(zip(frames, cells, strict=True)):
+            if rect is None:
+                out[i] = self._full_crop(t, box, *enlargements[i])
+                continue
+            x0, x1, y0, y1 = rect
+            idx = self.index(t)
+            # one run of points per grid row: columns y0 and y1 + 1 of starts (a strided view);
+            # gaps of at most BRIDGE_POINTS points between runs are bridged
+            runs = idx.starts[x0 : x1 + 1, y0 : y1 + 2 : y1 + 1 - y0].tolist()
+            width, (start, stop) = 0, runs[0]
+            for a, b in runs[1:]:
+                if a - stop > BRIDGE_POINTS:
+                    pieces.append(idx.xyz[:, start:stop])
+                    width += stop - start
+                    start = a
+                stop = b
+            pieces.append(idx.xyz[:, start:stop])
+            served.append(i)
+            widths.append(width + stop - start)
+        if served:
+            xyz = pieces[0] if len(pieces) == 1 else np.concatenate(pieces, axis=1)
+            if len(served) < len(frames):
+                enlargements = tuple(enlargements[i] for i in served)
+            threshold = self._threshold(box, enlargements)
+            if len(served) > 1:  # each gathered point gets its request's extent
+                threshold = threshold.repeat(widths, axis=1)
+            crops = crop_parts(box_frame(xyz, box), threshold, widths)
+            for i, crop in zip(served, crops, strict=True):
+                out[i] = crop
+        return out, len(served)
+
+    def _threshold(
+        self, box: np.ndarray, enlargements: tuple[tuple[float, float], ...]
+    ) -> np.ndarray:
+        """:func:`extent_threshold` of the float32 crops, memoised: a tracklet's boxes take few
+        sizes (the predictions all have frame 0's)."""
+        key = (*box[3:6].tolist(), enlargements)
+        threshold = self._thresholds.get(key)
+        if threshold is None:
+            threshold = extent_threshold(crop_extents(box, enlargements), np.float32)
+            self._thresholds[key] = threshold
+        return threshold
 
     def target_points(self, t: int) -> int:
         if self.corridor is None:
@@ -616,24 +670,24 @@ class TrackingEnv(gym.Env):
         values = a.tolist()
         if not all(map(math.isfinite, values)):
             raise ValueError(f"action contains NaN or inf: {values} (dx, dy, dz, dyaw)")
-        limits = self._max_action_list
-        clipped_list = [min(max(v, -m), m) for v, m in zip(values, limits, strict=True)]
-        action_clipped = clipped_list != values
-        clipped = np.array(clipped_list)
+        clipped = _clip(values, self._max_action_list)
+        action_clipped = clipped != values
 
         tr, t = self._tracklet, self._t
-        pred = _apply_offset(self._ref, clipped, self._size0)
+        # the boxes as Python floats for the scalar math; arrays only where they are kept
+        pred_box = _apply_offset(self._ref, clipped, self._size_box)
+        pred = np.array(pred_box)
         gt = tr.boxes[t]
-        iou = _snap_iou(float(iou_3d(pred, gt)))
-        center_error = math.dist(pred[:3].tolist(), gt[:3].tolist())
+        gt_box = gt.tolist()
+        iou = _snap_iou(iou_pair(pred_box, gt_box))
+        center_error = math.dist(pred_box[:3], gt_box[:3])
         if center_error < ROUND_OFF:
             center_error = 0.0
         reward = self._reward(pred, gt, iou, center_error)
-        prev = self._preds[-1]
-        self._motion = _offset_between(prev, pred, self._motion_hi)
+        self._motion = _offset_between(self._pred_box, pred_box, self._motion_hi)
+        self._pred_box = pred_box
         self._preds.append(pred)
-        self._last_pred = pred
-        terminated = t == len(tr) - 1
+        terminated = t == self._last_frame
         self._render_state = (self._search_crop, self._ref, gt, pred)
         info = {
             "iou": iou,
@@ -708,16 +762,19 @@ class TrackingEnv(gym.Env):
         self._entry = None
         self._index = -1
         self._t = 0
+        self._last_frame = 0
         self._done = False
         self._preds: list[np.ndarray] = []
         self._ref = np.zeros(7)
         self._size0 = np.zeros(3)
-        self._motion = np.zeros(4)
+        self._size_box = [0.0] * 3
+        self._size_obs = np.zeros(3, np.float32)
+        self._pred_box = [0.0] * 7
+        self._motion = np.zeros(4, np.float32)
         self._observed = True
         self._first_crop = None
         self._prev_crop = None
         self._all_crops: list[np.ndarray] = []
-        self._last_pred = None
         self._last_obs = None
         self._last_empty = (False, False)
         self._search_crop = np.zeros((0, 3), np.float32)
@@ -766,14 +823,18 @@ class TrackingEnv(gym.Env):
             total -= entry.nbytes
         self._cache_bytes = total
 
-    def _crop(self, t: int, box: np.ndarray, scale: float, offset_m: float) -> np.ndarray:
+    def _crops(
+        self, box: np.ndarray, frames: Sequence[int], enlargements: tuple[tuple[float, float], ...]
+    ) -> list[np.ndarray]:
+        """:meth:`_TrackletScans.crops` with the cache's statistics and budget."""
         entry = self._entry
         before = entry.nbytes
-        pts, hit = entry.crop(t, box, scale, offset_m)
-        self.cache_stats["corridor" if hit else "full_scan"] += 1
+        crops, hits = entry.crops(box, frames, enlargements)
+        self.cache_stats["corridor"] += hits
+        self.cache_stats["full_scan"] += len(frames) - hits
         if entry.nbytes != before:
             self._evict(keep=self._index)
-        return pts
+        return crops
 
     def _target_points(self, t: int) -> int:
         entry = self._entry
@@ -794,9 +855,16 @@ class TrackingEnv(gym.Env):
         self._observed = bool(self.is_observed(tr.category))
         box0 = np.asarray(tr.boxes[0], dtype=np.float64).copy()
         self._size0 = box0[3:6].copy()
+        self._size_box = self._size0.tolist()
+        self._size_obs = self._size0.astype(np.float32)
         self._preds = [box0]
+        self._pred_box = box0.tolist()  # the last prediction's values (motion's reference)
         self._t = 1
-        self._first_crop = self._crop(0, box0, TEMPLATE_SCALE, 0.0)
+        self._last_frame = len(tr) - 1
+        entry = self._entry
+        if entry.first_crop is None:  # frame 0's template crop: the same in every episode
+            (entry.first_crop,) = self._crops(box0, (0,), (TEMPLATE_ENLARGEMENT,))
+        self._first_crop = entry.first_crop
         self._prev_crop = self._first_crop
         self._all_crops = [self._first_crop]
 
@@ -809,44 +877,50 @@ class TrackingEnv(gym.Env):
 
     def _observe(self) -> tuple[dict[str, np.ndarray], bool, bool]:
         """Observation for frame ``self._t`` (uses the predictions up to ``t - 1``)."""
-        t, rng = self._t, self.np_random
-        if t >= 2:  # previous frame's crop around the previous prediction
-            if self.template_mode != "first":
-                self._prev_crop = self._crop(t - 1, self._preds[t - 1], TEMPLATE_SCALE, 0.0)
-                if self.template_mode == "all":
-                    self._all_crops.append(self._prev_crop)
-        mode = self.template_mode
-        if mode == "first_and_previous":
-            half = TEMPLATE_SIZE // 2
-            a, m_a = resample(self._first_crop, half, rng)
-            b, m_b = resample(self._prev_crop, TEMPLATE_SIZE - half, rng)
-            template = np.concatenate([a, b])
-            n_template = m_a + m_b
-        elif mode == "first":
-            template, n_template = resample(self._first_crop, TEMPLATE_SIZE, rng)
-        elif mode == "previous":
-            template, n_template = resample(self._prev_crop, TEMPLATE_SIZE, rng)
-        else:
-            merged = (
-                np.concatenate(self._all_crops) if len(self._all_crops) > 1 else self._first_crop
-            )
-            template, n_template = resample(merged, TEMPLATE_SIZE, rng)
+        t, mode = self._t, self.template_mode
         ref = self._reference_box(t)
+        if t >= 2 and mode != "first":  # previous frame's crop around the previous prediction
+            if self.reference == "prediction":  # one box for both crops: one pass
+                self._prev_crop, search_pts = self._crops(
+                    ref, (t - 1, t), (TEMPLATE_ENLARGEMENT, SEARCH_ENLARGEMENT)
+                )
+            else:
+                prev_box = self._preds[t - 1]
+                (self._prev_crop,) = self._crops(prev_box, (t - 1,), (TEMPLATE_ENLARGEMENT,))
+                (search_pts,) = self._crops(ref, (t,), (SEARCH_ENLARGEMENT,))
+            if mode == "all":
+                self._all_crops.append(self._prev_crop)
+        else:
+            (search_pts,) = self._crops(ref, (t,), (SEARCH_ENLARGEMENT,))
+        template = np.empty((TEMPLATE_SIZE, 3), np.float32)
+        search = np.empty((SEARCH_SIZE, 3), np.float32)
+        half = TEMPLATE_SIZE // 2
+        if mode == "first_and_previous":
+            sets, outs = [self._first_crop, self._prev_crop], [template[:half], template[half:]]
+        elif mode == "first":
+            sets, outs = [self._first_crop], [template]
+        elif mode == "previous":
+            sets, outs = [self._prev_crop], [template]
+        else:
+            crops = self._all_crops
+            sets, outs = [np.concatenate(crops) if len(crops) > 1 else crops[0]], [template]
+        *counts, n_search = resample_into([*sets, search_pts], [*outs, search], self.np_random)
+        n_template = sum(counts)
         self._ref = ref
-        search_pts = self._crop(t, ref, SEARCH_SCALE, SEARCH_OFFSET_M)
-        search, n_search = resample(search_pts, SEARCH_SIZE, rng)
         self._search_crop = search_pts
         obs = {
             "template": template,
             "search": search,
-            "size": self._size0.astype(np.float32),
-            "motion": self._motion.astype(np.float32),
+            "size": self._size_obs.copy(),
+            "motion": self._motion,  # a new array every step: handed over as it is
         }
-        self._last_obs = obs
-        self._last_empty = (n_template == 0, n_search == 0)
-        # fresh arrays for the caller; the env keeps its own for the terminal observation
-        out = {k: v.copy() for k, v in obs.items()}
-        return out, n_template == 0, n_search == 0
+        empty = (n_template == 0, n_search == 0)
+        if t == self._last_frame:
+            # the next step terminates and repeats this observation: keep a copy the caller
+            # cannot modify (earlier observations are handed over without one)
+            self._last_obs = {k: v.copy() for k, v in obs.items()}
+            self._last_empty = empty
+        return obs, *empty
 
     def _reward(self, pred: np.ndarray, gt: np.ndarray, iou: float, center_error: float) -> float:
         mode = self.reward_mode
@@ -867,25 +941,33 @@ class TrackingEnv(gym.Env):
             info["weather"] = weather
 
 
-def _apply_offset(ref: np.ndarray, off: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """Scalar :func:`envs.geometry.apply_offset` for one box, with the size replaced -> (7,)."""
+def _apply_offset(ref: np.ndarray, off: Sequence[float], size: list[float]) -> list[float]:
+    """Scalar :func:`envs.geometry.apply_offset` for one box, with the size replaced -> the
+    7 box values."""
     x, y, z, _, _, _, yaw = ref.tolist()
-    dx, dy, dz, dyaw = off.tolist()
+    dx, dy, dz, dyaw = off
     c, s = math.cos(yaw), math.sin(yaw)
     new_yaw = (yaw + dyaw + math.pi) % (2.0 * math.pi) - math.pi
-    l, w, h = size.tolist()
-    return np.array([x + c * dx - s * dy, y + s * dx + c * dy, z + dz, l, w, h, new_yaw])
+    return [x + c * dx - s * dy, y + s * dx + c * dy, z + dz, *size, new_yaw]
 
 
-def _offset_between(ref: np.ndarray, target: np.ndarray, bound: Sequence[float]) -> np.ndarray:
-    """Scalar :func:`envs.geometry.offset_between` for one pair, clipped to ``±bound`` -> (4,)."""
-    x, y, z, _, _, _, yaw = ref.tolist()
-    tx, ty, tz, _, _, _, tyaw = target.tolist()
+def _offset_between(
+    ref: Sequence[float], target: Sequence[float], bound: Sequence[float]
+) -> np.ndarray:
+    """Scalar :func:`envs.geometry.offset_between` for one pair of boxes (7 values each),
+    clipped to ``±bound`` -> (4,) float32 (the observation's dtype)."""
+    x, y, z, _, _, _, yaw = ref
+    tx, ty, tz, _, _, _, tyaw = target
     c, s = math.cos(yaw), math.sin(yaw)
     dx, dy = tx - x, ty - y
     dyaw = (tyaw - yaw + math.pi) % (2.0 * math.pi) - math.pi
-    off = (c * dx + s * dy, -s * dx + c * dy, tz - z, dyaw)
-    return np.array([min(max(v, -m), m) for v, m in zip(off, bound, strict=True)])
+    return np.array(_clip((c * dx + s * dy, -s * dx + c * dy, tz - z, dyaw), bound), np.float32)
+
+
+def _clip(values: Sequence[float], bound: Sequence[float]) -> list[float]:
+    """``min(max(v, -m), m)`` for every value (NaN passes), in conditional expressions: the
+    builtins cost several times more on this per-step path."""
+    return [m if v > m else -m if v < -m else v for v, m in zip(values, bound, strict=True)]
 
 
 def _snap_iou(iou: float) -> float:

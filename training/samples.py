@@ -47,7 +47,7 @@ from envs.observation import (
     TEMPLATE_SCALE,
     TEMPLATE_SIZE,
     crop_box_frame,
-    resample,
+    resample_into,
 )
 
 __all__ = ["TrackingSamples", "crop_near", "load_tracklets"]
@@ -140,10 +140,12 @@ class TrackingSamples(Dataset):
         first_crop = crop_near(tr.points(0), box0, TEMPLATE_SCALE, 0.0)
         prev_crop = crop_near(tr.points(t - 1), prev, TEMPLATE_SCALE, 0.0)
         search_crop = crop_near(tr.points(t), ref, SEARCH_SCALE, SEARCH_OFFSET_M)
+        # resampled as the env's observations are: one call, the template halves in place
         half = self.template_size // 2
-        a, m_a = resample(first_crop, half, rng)
-        b, m_b = resample(prev_crop, self.template_size - half, rng)
-        search, m_s = resample(search_crop, self.search_size, rng)
+        template = np.empty((self.template_size, 3), np.float32)
+        search = np.empty((self.search_size, 3), np.float32)
+        a, b = template[:half], template[half:]
+        m_a, m_b, m_s = resample_into([first_crop, prev_crop, search_crop], [a, b, search], rng)
 
         own0 = np.array([0, 0, 0, *box0[3:6], 0.0])
         prev_in_own = boxes_in_frame(prev_gt, prev)
@@ -157,7 +159,7 @@ class TrackingSamples(Dataset):
 
         f32 = torch.float32
         return {
-            "template": torch.from_numpy(np.concatenate([a, b])),
+            "template": torch.from_numpy(template),
             "search": torch.from_numpy(search),
             "size": torch.as_tensor(box0[3:6], dtype=f32),
             "motion": torch.as_tensor(motion, dtype=f32),
