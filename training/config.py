@@ -28,9 +28,10 @@ TRACKERS = ("p2b", "bat", "gpt")
 MODEL_SIZES = ("default", "slim")
 
 _SLIM_BACKBONE = {"channels": [[32, 32, 64], [64, 64, 128], [128, 128, 128]],
-                  "out_channels": 128, "neighbours": 16}
+                  "out_channels": 128, "neighbours": 16, "ragged_train": True}
 # Reduced widths for CPU training (the shipped checkpoints): about 6x cheaper per step than the
-# papers' widths, same architecture, same inputs (512 / 1024 points).
+# papers' widths, same architecture, same inputs (512 / 1024 points). Ragged training (BatchNorm
+# statistics over real ball-query hits only) saves another ~30 % of a CPU step.
 SLIM = {
     "p2b": {"backbone": _SLIM_BACKBONE, "hidden_channels": 64, "out_channels": 128,
             "head": {"vote_channels": 128}},
@@ -48,6 +49,8 @@ def tracker_config(tracker: str, model_size: str = "default", extra: dict | None
     base = copy.deepcopy(SLIM[tracker]) if model_size == "slim" else {}
     base.update(extra or {})
     return base
+
+
 WEIGHTINGS = ("none", "decorrelation", "sam")
 DATASETS = ("synthetic", "kitti")
 
