@@ -172,9 +172,9 @@ def resample_into(
         # indices are in range by construction: "clip" skips take's checked, buffered path
         if m == 0:
             out.fill(0.0)
-        elif pad == 0:
-            choice = rng.choice(m, size=len(out), replace=False)
-            points.take(choice, axis=0, out=out, mode="clip")
+        elif pad == 0:  # a permutation's prefix: a uniform ordered subset (~3x cheaper
+            # than Generator.choice(replace=False), whose argument handling dominates here)
+            points.take(rng.permutation(m)[: len(out)], axis=0, out=out, mode="clip")
         else:
             out[:m] = points
             points.take(dups[pos : pos + pad], axis=0, out=out[m:], mode="clip")

@@ -200,12 +200,12 @@ def test_hash_order_spreads_duplicates_like_a_random_permutation():
     assert torch.equal(prefix, ops.gather(pts[:, perm], ops.hash_order(pts[:, perm])[:, :64])[0])
 
 
-@pytest.mark.parametrize("gain", [0, 10**9])  # always the x-window / always every point
+@pytest.mark.parametrize("dense_pairs", [0, 10**9])  # always the grid / always every pair
 @pytest.mark.parametrize("radius,k", [(0.15, 8), (0.3, 32), (10.0, 4), (0.05, 2)])
-def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, gain, monkeypatch):
-    monkeypatch.setattr(ops, "_WINDOW_GAIN", gain)
+def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, dense_pairs, monkeypatch):
+    monkeypatch.setattr(ops, "_DENSE_PAIRS", dense_pairs)
     xyz = _points(n=200, seed=4)
-    xyz[:, 100:130] = xyz[:, 60:90]  # copies: equal x values in the sorted window
+    xyz[:, 100:130] = xyz[:, 60:90]  # copies: equal keys in the sorted grid cells
     centres = torch.cat([xyz[:, :40], torch.full((2, 2, 3), 5.0), torch.full((2, 1, 3), -5.0)],
                         dim=1)  # 3 without a hit, beyond either end of the x range
     idx, count = ops.ball_query(radius, k, xyz, centres, return_count=True)
@@ -237,3 +237,13 @@ def test_pairwise_sqdist_in_place_path_keeps_gradients():
     with torch.no_grad():
         torch.testing.assert_close(ops.pairwise_sqdist(a, b), d, rtol=0, atol=0)
     assert a.grad is not None and torch.isfinite(a.grad).all()
+
+
+def test_hash_orders_of_several_clouds_equal_one_call_each():
+    g = torch.Generator().manual_seed(6)
+    template = torch.rand(2, 64, 3, generator=g)
+    search = torch.cat([template, torch.rand(2, 100, 3, generator=g)], dim=1)  # shared points
+    search[:, 120:] = search[:, 80:124].clone()  # copies within the search cloud
+    order_t, order_s = ops.hash_orders([template, search], [3, 4])
+    assert torch.equal(order_t, ops.hash_order(template, seed=3))
+    assert torch.equal(order_s, ops.hash_order(search, seed=4))

@@ -20,7 +20,8 @@ the first hit, whose features cannot change a max, so only the real hits go thro
 result; training keeps the dense layout so BatchNorm statistics match the reference, unless
 ``ragged_train=True``). Padded clouds (the env repeats the points of small clouds) are evaluated
 once per distinct point in eval: copies of a centre share its features, copies of a neighbour
-its MLP value (:meth:`SetAbstraction._distinct`).
+its MLP value (:meth:`SetAbstraction.ragged`). In eval the template and the search region go
+through each layer together (:meth:`Backbone.forward_many`): one MLP evaluation per layer.
 """
 
 from __future__ import annotations
@@ -91,32 +92,54 @@ class SetAbstraction(nn.Module):
                 first: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``first (B, N)``: :func:`trackers.ops.first_copy` of ``xyz`` (ragged path only), to
         evaluate each distinct centre and neighbour once."""
+        if self.ragged_train if self.training else self.ragged_eval:
+            return self.ragged([xyz], [feats], [n], [first])[0]
         centres = xyz[:, :n]
         per_point, per_centre = self.point_terms(xyz, feats, centres)
-        if self.ragged_train if self.training else self.ragged_eval:
-            group, point = ops.ball_query_pairs(self.radius, self.k, xyz, centres)
-            if first is None:
-                return centres, grouped_max(self.mlp, per_point, per_centre, group, point)
-            return centres, self._distinct(per_point, per_centre, group, point, first)
         idx = ops.ball_query(self.radius, self.k, xyz, centres)
         pre = ops.group(per_point, idx) - per_centre[:, :, None, :]  # (B, n, k, C1)
         return centres, self.mlp.forward_from(0, pre).amax(dim=2)
 
-    def _distinct(self, per_point: torch.Tensor, per_centre: torch.Tensor, group: torch.Tensor,
-                  point: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
-        """:func:`grouped_max` over first copies only, then copied to the other copies.
+    def ragged(self, xyzs: list[torch.Tensor], feats: list[torch.Tensor | None], ns: list[int],
+               firsts: list[torch.Tensor | None]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The layer on several clouds ``(B, N_i, 3)`` (same ``B``, e.g. template and search) at
+        once over the real ball-query hits only: one MLP evaluation for all their groups.
 
-        Copies of a point have equal coordinates and (same ball, same hits) equal features, so
+        With ``firsts[i]`` (:func:`trackers.ops.first_copy`) only first copies are evaluated:
+        copies of a point have equal coordinates and (same ball, same hits) equal features, so
         a copy of a centre has the same group and a copy of a hit the same MLP input; the first
         copy of a hit is itself a hit, earlier in index order, so it is among the kept slots.
         """
-        b, n = per_centre.shape[:2]
-        npts = per_point.shape[1]
-        own = first == torch.arange(npts, device=first.device)  # (B, N): first copies
-        keep = own.flatten()[point] & own[:, :n].flatten()[group]
-        out = grouped_max(self.mlp, per_point, per_centre, group[keep], point[keep])
-        src = first[:, :n] + (torch.arange(b, device=first.device) * n)[:, None]
-        return out.flatten(0, 1).index_select(0, src.flatten()).view(b, n, -1)
+        b = xyzs[0].shape[0]
+        centres = [xyz[:, :n] for xyz, n in zip(xyzs, ns, strict=True)]
+        terms = [self.point_terms(xyz, f, c) for xyz, f, c in zip(xyzs, feats, centres,
+                                                                   strict=True)]
+        groups, points = [], []
+        group_start = point_start = 0
+        for xyz, c, first in zip(xyzs, centres, firsts, strict=True):
+            group, point = ops.ball_query_pairs(self.radius, self.k, xyz, c)
+            if first is not None:  # first copies only (of the centre and of the hit)
+                n_pts = xyz.shape[1]
+                own = first == torch.arange(n_pts, device=first.device)  # (B, N)
+                keep = own.flatten()[point] & own[:, :c.shape[1]].flatten()[group]
+                group, point = group[keep], point[keep]
+            groups.append(group + group_start)
+            points.append(point + point_start)
+            group_start += b * c.shape[1]
+            point_start += b * xyz.shape[1]
+        per_point = torch.cat([t[0].reshape(-1, t[0].shape[-1]) for t in terms])[None]
+        per_centre = torch.cat([t[1].reshape(-1, t[1].shape[-1]) for t in terms])[None]
+        out = grouped_max(self.mlp, per_point, per_centre, torch.cat(groups), torch.cat(points))
+        results, start = [], 0
+        for c, first in zip(centres, firsts, strict=True):
+            n = c.shape[1]
+            rows = out[0, start:start + b * n]
+            if first is not None:  # copies of a centre take their first copy's features
+                src = first[:, :n] + (torch.arange(b, device=first.device) * n)[:, None]
+                rows = rows.index_select(0, src.flatten())
+            results.append((c, rows.view(b, n, -1)))
+            start += b * n
+        return results
 
 
 class Backbone(nn.Module):
@@ -142,22 +165,54 @@ class Backbone(nn.Module):
 
     def forward(self, points: torch.Tensor, order: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self.forward_many([points], [order])[0]
+
+    def forward_many(self, clouds: list[torch.Tensor], orders: list[torch.Tensor]
+                     ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+        """:meth:`forward` of several clouds ``(B, N_i, 3)`` (same ``B``): one evaluation for all
+        of them on the ragged path in eval mode (fewer, larger operations: the template and the
+        search region at batch 1), one call each otherwise (training keeps the BatchNorm
+        statistics of each cloud apart)."""
+        ragged = not self.training and all(layer.ragged_eval for layer in self.layers)
+        if not ragged and len(clouds) > 1:
+            return [self.forward_many([p], [o])[0] for p, o in zip(clouds, orders, strict=True)]
+        ordered = [self._ordered(p, o) for p, o in zip(clouds, orders, strict=True)]
+        xyzs, orders = [x for x, _ in ordered], [o for _, o in ordered]
+        # copies of a point (the env pads small clouds) are evaluated once on the ragged path
+        firsts = [_copies(xyz) if ragged else None for xyz in xyzs]
+        feats: list[torch.Tensor | None] = [None] * len(xyzs)
+        ns = [xyz.shape[1] for xyz in xyzs]
+        for layer in self.layers:
+            ns = [n // 2 for n in ns]
+            if ragged:  # layer inputs are prefixes of xyz and a first copy precedes its copies
+                outs = layer.ragged(xyzs, feats, ns, [None if f is None else f[:, :x.shape[1]]
+                                                      for f, x in zip(firsts, xyzs, strict=True)])
+            else:
+                outs = [layer(xyzs[0], feats[0], ns[0])]
+            xyzs, feats = [o[0] for o in outs], [o[1] for o in outs]
+        b = xyzs[0].shape[0]
+        out = self.out(torch.cat([f.reshape(-1, f.shape[-1]) for f in feats]))
+        results, start = [], 0
+        for xyz, order, n in zip(xyzs, orders, ns, strict=True):
+            results.append((xyz, out[start:start + b * n].view(b, n, -1), order[:, :n]))
+            start += b * n
+        return results
+
+    def _ordered(self, points: torch.Tensor, order: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The points in sampling order and that order (FPS first when ``sampling="fps"``)."""
         if self.config.sampling == "fps":  # FPS picks first (in FPS order), then the rest
             first = ops.farthest_point_sample(ops.gather(points, order), points.shape[1] // 2)
             rest = torch.ones_like(order, dtype=torch.bool).scatter_(1, first, False)
             pos = torch.arange(order.shape[1], device=order.device).expand_as(order)
             rest_idx = pos[rest].view(order.shape[0], -1)
             order = torch.gather(order, 1, torch.cat([first, rest_idx], dim=1))
-        xyz = ops.gather(points, order)
-        feats = None
-        first = None
-        if not self.training and all(layer.ragged_eval for layer in self.layers):
-            first = ops.first_copy(xyz)
-            if bool((first == torch.arange(xyz.shape[1], device=xyz.device)).all()):
-                first = None  # no copies: nothing to skip
-        n = points.shape[1]
-        for layer in self.layers:
-            n //= 2
-            # layer inputs are prefixes of xyz and a first copy precedes its copies
-            xyz, feats = layer(xyz, feats, n, None if first is None else first[:, :xyz.shape[1]])
-        return xyz, self.out(feats), order[:, :n]
+        return ops.gather(points, order), order
+
+
+def _copies(xyz: torch.Tensor) -> torch.Tensor | None:
+    """:func:`trackers.ops.first_copy` of ``xyz (B, N, 3)``, or ``None`` when it has no copies."""
+    first = ops.first_copy(xyz)
+    if bool((first == torch.arange(xyz.shape[1], device=xyz.device)).all()):
+        return None
+    return first

@@ -181,7 +181,8 @@ class Tracker(nn.Module):
             return (ops.random_order(template.shape[0], template.shape[1], gen, template.device),
                     ops.random_order(search.shape[0], search.shape[1], gen, search.device))
         seed = int(self.config.sampling_seed)
-        return ops.hash_order(template, seed), ops.hash_order(search, seed + 1)
+        order_t, order_s = ops.hash_orders([template, search], [seed, seed + 1])
+        return order_t, order_s
 
     def forward(self, batch: Mapping[str, torch.Tensor],
                 generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
@@ -192,8 +193,8 @@ class Tracker(nn.Module):
                                  f"(B, {OBS_SHAPES[key][0]}, 3)")
         template, search = batch["template"], batch["search"]
         order_t, order_s = self.sampling_orders(template, search, generator)
-        t_xyz, t_feat, t_idx = self.backbone(template, order_t)
-        s_xyz, s_feat, s_idx = self.backbone(search, order_s)
+        (t_xyz, t_feat, t_idx), (s_xyz, s_feat, s_idx) = self.backbone.forward_many(
+            [template, search], [order_t, order_s])
         z, extra = self.fuse(t_xyz, t_feat, s_xyz, s_feat, dict(batch))
         out = self.head(s_xyz, z)
         out.update(Z=z, seed_xyz=s_xyz, seed_idx=s_idx, template_seed_xyz=t_xyz,

@@ -98,8 +98,12 @@ class MLP(nn.Module):
 
     def forward_from(self, i: int, pre: torch.Tensor) -> torch.Tensor:
         """Continue from the pre-activation of layer ``i`` (its ``linear_params`` applied)."""
+        return self.hidden_from(i, pre, len(self.linears))
+
+    def hidden_from(self, i: int, pre: torch.Tensor, stop: int) -> torch.Tensor:
+        """From the pre-activation of layer ``i`` to the input of layer ``stop > i``."""
         x = self.finish(i, pre)
-        for j in range(i + 1, len(self.linears)):
+        for j in range(i + 1, stop):
             w, b = self.linear_params(j)
             x = self.finish(j, F.linear(x, w, b))
         return x
@@ -124,7 +128,21 @@ def grouped_max(mlp: MLP, per_point: torch.Tensor, per_centre: torch.Tensor,
     # index_select, not [...]: its backward is several times faster on CPU (see ops.gather)
     pre = (per_point.reshape(-1, c1).index_select(0, point)
            - per_centre.reshape(-1, c1).index_select(0, group))
-    h = mlp.forward_from(0, pre)  # (P, C) >= 0 after the final ReLU
-    out = h.new_zeros(b * m, h.shape[-1])
+    last = len(mlp.linears) - 1
+    if mlp.training:  # BatchNorm on batch statistics: every member's full output
+        h = mlp.forward_from(0, pre)  # (P, C) >= 0 after the final ReLU
+        out = h.new_zeros(b * m, h.shape[-1])
+        out.scatter_reduce_(0, group[:, None].expand(-1, h.shape[-1]), h, "amax")
+        return out.view(b, m, -1)
+    # eval: the last bias and ReLU are monotone, so they go after the max (on M rows, not P):
+    # max_j relu(x_j + b) = relu(max_j x_j + b), bit for bit (rounding is monotone too)
+    if last == 0:
+        h, bias = pre, None
+    else:
+        w, bias = mlp.linear_params(last)
+        h = F.linear(mlp.hidden_from(0, pre, last), w)
+    out = h.new_full((b * m, h.shape[-1]), -torch.inf)
     out.scatter_reduce_(0, group[:, None].expand(-1, h.shape[-1]), h, "amax")
-    return out.view(b, m, -1)
+    if bias is not None:
+        out = out + bias
+    return mlp.finish(last, out).view(b, m, -1)

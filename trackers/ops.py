@@ -13,6 +13,9 @@ integer or comparison based; distances are computed the same way on both).
 
 from __future__ import annotations
 
+import itertools
+from collections.abc import Sequence
+
 import torch
 
 __all__ = [
@@ -23,6 +26,7 @@ __all__ = [
     "gather",
     "group",
     "hash_order",
+    "hash_orders",
     "knn",
     "pairwise_sqdist",
     "random_order",
@@ -112,24 +116,55 @@ def hash_order(xyz: torch.Tensor, seed: int = 0, quantum: float = 1e-4) -> torch
     so a prefix is a random sample invariant to input permutations. (Distinct points closer than
     ``quantum`` are treated as copies of one point: the only case where input order can matter.)
     """
+    return hash_orders([xyz], [seed], quantum)[0]
+
+
+def hash_orders(clouds: Sequence[torch.Tensor], seeds: Sequence[int], quantum: float = 1e-4
+                ) -> list[torch.Tensor]:
+    """:func:`hash_order` of each cloud ``(B, N_i, 3)`` with its seed -> ``[(B, N_i)]``, the
+    same orders bit for bit, hashed side by side (one pass of the elementwise hash, which is
+    most of the cost at batch 1)."""
+    sizes = [c.shape[1] for c in clouds]
+    xyz = torch.cat(list(clouds), dim=1)
+    dev = xyz.device
     q = (torch.round(xyz.double() / quantum).long() & _MASK32).movedim(-1, 0)  # (3, B, N)
     # two independent 32-bit hash chains, run side by side (chain, B, N): half the small ops
     inputs = torch.stack([q, _mul32(q, 0x27D4EB2F)], dim=1)  # (3, 2, B, N)
-    h = torch.tensor([(seed * 0x9E3779B1 + 0x7F4A7C15) & _MASK32,
-                      (seed * 0x85EBCA77 + 0x165667B1) & _MASK32], device=xyz.device)
-    h = h.view(2, 1, 1)
+    starts = [(seed * 0x9E3779B1 + 0x7F4A7C15) & _MASK32 for seed in seeds]
+    starts2 = [(seed * 0x85EBCA77 + 0x165667B1) & _MASK32 for seed in seeds]
+    size = torch.tensor(sizes, device=dev)
+    h = torch.stack([torch.tensor(starts, device=dev), torch.tensor(starts2, device=dev)])
+    h = h.repeat_interleave(size, dim=1, output_size=xyz.shape[1])[:, None, :]  # (2, 1, N)
     for c in range(inputs.shape[0]):
         h = _mix32(h ^ inputs[c])
     key = ((h[0] >> 1) << 32) | h[1]  # 63 bits: coordinates collide with probability ~1e-13
-    key, order = torch.sort(key, dim=1, stable=True)
-    # occurrence rank of each point within its run of identical keys
-    pos = torch.arange(key.shape[1], device=key.device).expand_as(key)
-    starts = torch.ones_like(key, dtype=torch.bool)
-    starts[:, 1:] = key[:, 1:] != key[:, :-1]
-    rank = pos - torch.where(starts, pos, torch.zeros_like(pos)).cummax(dim=1).values
+    segment = None  # the cloud of each point (one cloud: not needed)
+    if len(sizes) > 1:
+        segment = torch.arange(len(sizes), device=dev).repeat_interleave(size).expand_as(key)
+    key, order = _sort_within(key, segment)
+    # occurrence rank of each point within its run of identical keys (runs end at clouds' ends)
+    pos = torch.arange(key.shape[1], device=dev).expand_as(key)
+    run = torch.ones_like(key, dtype=torch.bool)
+    run[:, 1:] = key[:, 1:] != key[:, :-1]
+    if segment is not None:
+        run |= segment != torch.roll(segment, 1, dims=1)
+    rank = pos - torch.where(run, pos, torch.zeros_like(pos)).cummax(dim=1).values
     spread = _mix32(_mix32((key & _MASK32) ^ _mul32(rank + 1, 0x9E3779B1)) ^ (key >> 32))
     final = ((spread >> 1) << 31) | (key >> 32)  # rank-spread high bits, coordinates as tie-break
-    return torch.gather(order, 1, torch.sort(final, dim=1, stable=True).indices)
+    order = torch.gather(order, 1, _sort_within(final, segment)[1])
+    offsets = [0, *itertools.accumulate(sizes)]
+    return [order[:, a:b] - a for a, b in itertools.pairwise(offsets)]
+
+
+def _sort_within(key: torch.Tensor, segment: torch.Tensor | None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Stable sort of ``key (B, N)`` within the consecutive segments ``segment (B, N)`` (sorted
+    values and indices; ``None``: one segment): by key, then stably by segment."""
+    key, order = torch.sort(key, dim=1, stable=True)
+    if segment is not None:
+        by_segment = torch.sort(segment.gather(1, order), dim=1, stable=True).indices
+        key, order = key.gather(1, by_segment), order.gather(1, by_segment)
+    return key, order
 
 
 def first_copy(xyz: torch.Tensor) -> torch.Tensor:
@@ -219,27 +254,22 @@ def ball_query_pairs(radius: float, k: int, xyz: torch.Tensor, centres: torch.Te
 
     Per centre the first ``k`` hits in index order - the slots of ``ball_query`` below its count;
     a centre without hits gets the one pair ``(centre, point 0)``, as its all-zero ``idx`` row.
-    Candidates are the points whose ``x`` lies within (a little more than) ``radius`` of the
-    centre's - a window of the points sorted by ``x`` - when that window is much narrower than
-    ``N`` (:func:`_ball_window`), else all points (:func:`_ball_dense`); the hit test is the same
-    distance formula either way, so the pairs are the same.
+    Small problems test every pair (:func:`_ball_dense`); larger ones only the points of the
+    3 x 3 grid cells around each centre (:func:`_ball_grid`); the hit test is the same distance
+    formula either way, so the pairs are the same.
     """
     with torch.no_grad():  # indices only: no graph through the distances
         b, n = xyz.shape[:2]
-        sx, by_x = xyz[..., 0].sort(dim=1)
-        reach = radius * (1 + 1e-4) + 1e-6  # a superset of the hits despite rounding
-        cx = centres[..., 0].contiguous()
-        lo = torch.searchsorted(sx, cx - reach)
-        width = int((torch.searchsorted(sx, cx + reach, right=True) - lo).max()) if n else 0
-        if width * _WINDOW_GAIN < n:
-            group, point = _ball_window(radius, k, xyz, centres, by_x, lo, max(width, 1))
-        else:
+        m = centres.shape[1]
+        if b * m * n <= _DENSE_PAIRS:
             group, point = _ball_dense(radius, k, xyz, centres)
-        return group, point + torch.div(group, centres.shape[1], rounding_mode="floor") * n
+        else:
+            group, point = _ball_grid(radius, k, xyz, centres)
+        return group, point + torch.div(group, m, rounding_mode="floor") * n
 
 
-#: :func:`ball_query_pairs` tests a window of candidates when it is this many times narrower.
-_WINDOW_GAIN = 5
+#: :func:`ball_query_pairs` tests every pair up to this many (``B * M * N``), else grid cells.
+_DENSE_PAIRS = 1 << 18
 
 
 def _ball_dense(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
@@ -258,33 +288,56 @@ def _ball_dense(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
     return pairs[:, 0], pairs[:, 1]
 
 
-def _ball_window(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor,
-                 by_x: torch.Tensor, lo: torch.Tensor, width: int
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Candidates ``by_x[lo : lo + width]`` per centre (``by_x (B, N)`` the points sorted by
-    ``x``, ``lo (B, M)``) -> flat centre index ``(P,)``, point index in its row ``(P,)``.
+def _ball_grid(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Candidates from the 3 x 3 cells of an ``x, y`` grid around each centre -> flat centre
+    index ``(P,)``, point index in its row ``(P,)``.
 
-    Candidates beyond a centre's true window fail the distance test (their ``x`` is too far),
-    so only slots past the last point need a mask; the ``k`` smallest hit indices are the first
-    hits.
+    Cells are a little wider than ``radius`` and indexed in float64, so every hit (even one the
+    float32 test admits by rounding) lies in a neighbouring cell. Points sorted by
+    ``(batch, x cell, y cell)`` make each neighbouring column of three cells one contiguous
+    range; the hits among the candidates are sorted by ``(centre, point)`` and the first ``k``
+    per centre kept.
     """
     b, n = xyz.shape[:2]
     m = centres.shape[1]
-    cand = lo[..., None] + torch.arange(width, device=xyz.device)
-    past_end = cand >= n
-    idx = by_x.gather(1, cand.clamp_(max=n - 1).view(b, -1)).view(b, m, width)  # (B, M, W)
-    p = gather(xyz, idx.view(b, -1)).view(b, m, width, 3).permute(3, 0, 1, 2)
-    d = centres[:, :, None, 0] - p[0]  # the ops of pairwise_sqdist: the same rounding
+    dev = xyz.device
+    cell = radius * (1 + 1e-4) + 1e-6
+    ij = torch.floor(torch.cat([xyz[..., :2], centres[..., :2]], 1).double() / cell).long()
+    ij = ij - ij.flatten(0, 1).amin(0) + 1  # >= 1: a neighbour cell index is never negative
+    nx, ny = (int(v) + 2 for v in ij.flatten(0, 1).amax(0))
+    key = (torch.arange(b, device=dev)[:, None] * nx + ij[..., 0]) * ny + ij[..., 1]  # (B, N+M)
+    sorted_key, by_key = key[:, :n].flatten().sort(stable=True)  # by_key: flat point index
+    first_cell = key[:, n:].flatten()[:, None] + torch.tensor([-ny - 1, -1, ny - 1], device=dev)
+    lo = torch.searchsorted(sorted_key, first_cell)  # (B*M, 3): one column of 3 cells each
+    count = (torch.searchsorted(sorted_key, first_cell + 2, right=True) - lo).flatten()
+    total = int(count.sum())
+    column = torch.repeat_interleave(torch.arange(b * m * 3, device=dev), count,
+                                     output_size=total)
+    offset = torch.arange(total, device=dev) - (count.cumsum(0) - count).index_select(0, column)
+    point = by_key.index_select(0, lo.flatten().index_select(0, column) + offset)
+    group = torch.div(column, 3, rounding_mode="floor")
+    p = xyz.reshape(-1, 3).index_select(0, point).t()
+    c = centres.reshape(-1, 3).index_select(0, group).t()
+    d = c[0] - p[0]  # the ops of pairwise_sqdist: the same rounding
     sq = d * d
-    for c in (1, 2):
-        torch.sub(centres[:, :, None, c], p[c], out=d)
+    for axis in (1, 2):
+        torch.sub(c[axis], p[axis], out=d)
         sq.add_(d.mul_(d))
-    key = torch.where((sq < radius * radius) & ~past_end, idx, n)
-    first = key.topk(min(k, width), dim=-1, largest=False, sorted=True).values
-    first[..., 0].masked_fill_(first[..., 0] == n, 0)  # no hit: the pair (centre, point 0)
-    keep = first < n
-    pairs = keep.view(b * m, -1).nonzero()
-    return pairs[:, 0], first.view(b * m, -1)[pairs[:, 0], pairs[:, 1]]
+    hit = sq < radius * radius
+    group = group[hit]
+    point = point[hit] - torch.div(group, m, rounding_mode="floor") * n  # index in its row
+    hits = torch.bincount(group, minlength=b * m)
+    if bool((hits == 0).any()):  # no hit: the pair (centre, point 0)
+        empty = (hits == 0).nonzero().flatten()
+        group = torch.cat([group, empty])
+        point = torch.cat([point, torch.zeros_like(empty)])
+        hits = hits.clamp(min=1)
+    order = (group * n + point).sort().indices
+    group, point = group.index_select(0, order), point.index_select(0, order)
+    rank = torch.arange(len(group), device=dev) - (hits.cumsum(0) - hits).index_select(0, group)
+    keep = rank < k
+    return group[keep], point[keep]
 
 
 def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
