@@ -247,3 +247,19 @@ def test_hash_orders_of_several_clouds_equal_one_call_each():
     order_t, order_s = ops.hash_orders([template, search], [3, 4])
     assert torch.equal(order_t, ops.hash_order(template, seed=3))
     assert torch.equal(order_s, ops.hash_order(search, seed=4))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_ball_query_grid_cells_find_every_hit(seed):
+    """The grid path against every pair, on clouds with points on cell boundaries, exactly one
+    radius apart, copies and centres outside the cloud."""
+    g = torch.Generator().manual_seed(seed)
+    radius, k = [0.3, 0.5, 0.7, 0.05, 2.0, 0.3][seed], [32, 16, 8, 4, 64, 1][seed]
+    xyz = (torch.rand(2, 300, 3, generator=g) - 0.5) * 6
+    xyz[:, :100] = torch.round(xyz[:, :100] / radius) * radius  # on the grid lines
+    xyz[:, 250:] = xyz[:, 50:100].clone()
+    centres = torch.cat([xyz[:, :80], xyz[:, 80:120] + (torch.rand(2, 40, 3, generator=g) - 0.5)
+                         * 2 * radius, torch.full((2, 3, 3), 9.0)], dim=1)
+    dense = ops._ball_dense(radius, k, xyz, centres)
+    grid = ops._ball_grid(radius, k, xyz, centres)
+    assert torch.equal(dense[0], grid[0]) and torch.equal(dense[1], grid[1])
