@@ -19,6 +19,7 @@ import torch
 
 __all__ = [
     "apply_offset",
+    "apply_offset_pair",
     "apply_offset_torch",
     "box_corners",
     "box_corners_torch",
@@ -30,6 +31,7 @@ __all__ = [
     "iou_bev",
     "iou_pair",
     "offset_between",
+    "offset_between_pair",
     "points_in_box",
     "rotation_z",
     "wrap_yaw",
@@ -174,6 +176,27 @@ def offset_between(ref_boxes: np.ndarray, target_boxes: np.ndarray) -> np.ndarra
         ],
         axis=-1,
     )
+
+
+def apply_offset_pair(ref: Sequence[float], offset: Sequence[float]) -> list[float]:
+    """:func:`apply_offset` of one box (7 Python floats) by one offset (4) -> 7 floats: the lean
+    path in plain Python floats for per-step callers (the env's step)."""
+    x, y, z, length, width, height, yaw = ref
+    dx, dy, dz, dyaw = offset
+    c, s = math.cos(yaw), math.sin(yaw)
+    new_yaw = (yaw + dyaw + math.pi) % (2.0 * math.pi) - math.pi
+    return [x + c * dx - s * dy, y + s * dx + c * dy, z + dz, length, width, height, new_yaw]
+
+
+def offset_between_pair(ref: Sequence[float], target: Sequence[float]) -> list[float]:
+    """:func:`offset_between` of one pair of boxes (7 Python floats each) -> 4 floats (the lean
+    path of :func:`apply_offset_pair`)."""
+    x, y, z, _, _, _, yaw = ref
+    tx, ty, tz, _, _, _, tyaw = target
+    c, s = math.cos(yaw), math.sin(yaw)
+    dx, dy = tx - x, ty - y
+    dyaw = (tyaw - yaw + math.pi) % (2.0 * math.pi) - math.pi
+    return [c * dx + s * dy, -s * dx + c * dy, tz - z, dyaw]
 
 
 def boxes_in_frame(boxes: np.ndarray, frame_boxes: np.ndarray) -> np.ndarray:

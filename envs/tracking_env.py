@@ -22,7 +22,7 @@ import numpy as np
 from gymnasium import spaces
 
 from envs.data.tracklet import Tracklet
-from envs.geometry import iou_bev, iou_pair
+from envs.geometry import apply_offset_pair, iou_bev, iou_pair, offset_between_pair
 from envs.observation import (
     SEARCH_OFFSET_M,
     SEARCH_SCALE,
@@ -675,7 +675,8 @@ class TrackingEnv(gym.Env):
 
         tr, t = self._tracklet, self._t
         # the boxes as Python floats for the scalar math; arrays only where they are kept
-        pred_box = _apply_offset(self._ref, clipped, self._size_box)
+        pred_box = apply_offset_pair(self._ref.tolist(), clipped)
+        pred_box[3:6] = self._size_box  # frame 0's size
         pred = np.array(pred_box)
         gt = tr.boxes[t]
         gt_box = gt.tolist()
@@ -684,7 +685,9 @@ class TrackingEnv(gym.Env):
         if center_error < ROUND_OFF:
             center_error = 0.0
         reward = self._reward(pred, gt, iou, center_error)
-        self._motion = _offset_between(self._pred_box, pred_box, self._motion_hi)
+        self._motion = np.array(  # float32: the observation's dtype
+            _clip(offset_between_pair(self._pred_box, pred_box), self._motion_hi), np.float32
+        )
         self._pred_box = pred_box
         self._preds.append(pred)
         terminated = t == self._last_frame
@@ -939,29 +942,6 @@ class TrackingEnv(gym.Env):
         weather = getattr(self.scan_transform, "info", None)
         if weather is not None:
             info["weather"] = weather
-
-
-def _apply_offset(ref: np.ndarray, off: Sequence[float], size: list[float]) -> list[float]:
-    """Scalar :func:`envs.geometry.apply_offset` for one box, with the size replaced -> the
-    7 box values."""
-    x, y, z, _, _, _, yaw = ref.tolist()
-    dx, dy, dz, dyaw = off
-    c, s = math.cos(yaw), math.sin(yaw)
-    new_yaw = (yaw + dyaw + math.pi) % (2.0 * math.pi) - math.pi
-    return [x + c * dx - s * dy, y + s * dx + c * dy, z + dz, *size, new_yaw]
-
-
-def _offset_between(
-    ref: Sequence[float], target: Sequence[float], bound: Sequence[float]
-) -> np.ndarray:
-    """Scalar :func:`envs.geometry.offset_between` for one pair of boxes (7 values each),
-    clipped to ``±bound`` -> (4,) float32 (the observation's dtype)."""
-    x, y, z, _, _, _, yaw = ref
-    tx, ty, tz, _, _, _, tyaw = target
-    c, s = math.cos(yaw), math.sin(yaw)
-    dx, dy = tx - x, ty - y
-    dyaw = (tyaw - yaw + math.pi) % (2.0 * math.pi) - math.pi
-    return np.array(_clip((c * dx + s * dy, -s * dx + c * dy, tz - z, dyaw), bound), np.float32)
 
 
 def _clip(values: Sequence[float], bound: Sequence[float]) -> list[float]:

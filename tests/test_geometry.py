@@ -10,6 +10,7 @@ import torch
 
 from envs.geometry import (
     apply_offset,
+    apply_offset_pair,
     apply_offset_torch,
     box_corners,
     box_corners_torch,
@@ -20,6 +21,7 @@ from envs.geometry import (
     iou_3d,
     iou_bev,
     offset_between,
+    offset_between_pair,
     points_in_box,
     rotation_z,
     world_to_box,
@@ -339,6 +341,21 @@ def test_apply_offset_and_offset_between_are_inverse():
     assert np.allclose(torch_moved, moved)
     # hand-computed: facing +y, moving 1 m forward goes to +y
     assert np.allclose(apply_offset(box(yaw=math.pi / 2), [1.0, 0, 0, 0])[:3], [0, 1, 0])
+
+
+def test_scalar_box_offsets_equal_the_vectorised_ones():
+    """The env's per-step Python-float twins of apply_offset / offset_between."""
+    rng = np.random.default_rng(8)
+    ref = np.column_stack(
+        [rng.normal(0, 5, (50, 3)), rng.uniform(1, 4, (50, 3)), rng.uniform(-3.2, 3.2, 50)]
+    )
+    off = np.column_stack([rng.normal(0, 1, (50, 3)), rng.uniform(-4, 4, 50)])
+    moved = np.array([apply_offset_pair(r, o) for r, o in zip(ref.tolist(), off.tolist(),
+                                                              strict=True)])
+    np.testing.assert_allclose(moved, apply_offset(ref, off), rtol=0, atol=1e-12)
+    back = np.array([offset_between_pair(r, m) for r, m in zip(ref.tolist(), moved.tolist(),
+                                                               strict=True)])
+    np.testing.assert_allclose(back, offset_between(ref, moved), rtol=0, atol=1e-12)
 
 
 def test_boxes_in_frame_and_center_distance():

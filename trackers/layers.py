@@ -129,20 +129,19 @@ def grouped_max(mlp: MLP, per_point: torch.Tensor, per_centre: torch.Tensor,
     pre = (per_point.reshape(-1, c1).index_select(0, point)
            - per_centre.reshape(-1, c1).index_select(0, group))
     last = len(mlp.linears) - 1
+    bias = None
     if mlp.training:  # BatchNorm on batch statistics: every member's full output
-        h = mlp.forward_from(0, pre)  # (P, C) >= 0 after the final ReLU
-        out = h.new_zeros(b * m, h.shape[-1])
-        out.scatter_reduce_(0, group[:, None].expand(-1, h.shape[-1]), h, "amax")
-        return out.view(b, m, -1)
-    # eval: the last bias and ReLU are monotone, so they go after the max (on M rows, not P):
-    # max_j relu(x_j + b) = relu(max_j x_j + b), bit for bit (rounding is monotone too)
-    if last == 0:
-        h, bias = pre, None
-    else:
+        h = mlp.forward_from(0, pre)  # (P, C)
+    elif last == 0:
+        h = pre
+    else:  # eval: the last bias and ReLU are monotone, so they go after the max (M rows, not
+        # P): max_j relu(x_j + b) = relu(max_j x_j + b), bit for bit (rounding is monotone too)
         w, bias = mlp.linear_params(last)
         h = F.linear(mlp.hidden_from(0, pre, last), w)
-    out = h.new_full((b * m, h.shape[-1]), -torch.inf)
+    out = h.new_full((b * m, h.shape[-1]), -torch.inf)  # every group has a member
     out.scatter_reduce_(0, group[:, None].expand(-1, h.shape[-1]), h, "amax")
+    if mlp.training:
+        return out.view(b, m, -1)
     if bias is not None:
         out = out + bias
     return mlp.finish(last, out).view(b, m, -1)
