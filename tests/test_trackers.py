@@ -499,3 +499,11 @@ def test_folded_batchnorm_cache_follows_weight_updates(toy):
     assert not torch.allclose(before, after)
     torch.testing.assert_close(after, reference_outputs(model, toy[0])["scores"], rtol=0,
                                atol=1e-5)
+    # replacing a parameter's data (what .to() does) refolds too, without a version bump
+    with torch.no_grad():
+        norm = model.head.proposal.norms[0]
+        norm.running_mean.data = norm.running_mean.data + 0.5
+        replaced = model(toy[0])["scores"]
+    assert not torch.allclose(after, replaced)
+    torch.testing.assert_close(replaced, reference_outputs(model, toy[0])["scores"], rtol=0,
+                               atol=1e-5)

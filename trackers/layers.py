@@ -17,6 +17,7 @@ groups only (ragged), for the set abstraction and the proposal aggregation in ev
 
 from __future__ import annotations
 
+import operator
 from collections.abc import Sequence
 
 import torch
@@ -44,8 +45,11 @@ class MLP(nn.Module):
             nn.BatchNorm1d(self.channels[i + 1]) if self.activated[i] else nn.Identity()
             for i in range(n)
         )
-        # layer -> (key of the source tensors, folded weight and bias); see linear_params
-        self._folded: dict[int, tuple[tuple, tuple[torch.Tensor, torch.Tensor]]] = {}
+        # the same modules as a plain tuple: ModuleList indexing costs ~4 us, and a forward at
+        # batch 1 asks for every layer's parameters
+        self._layers = tuple(zip(self.linears, self.norms, strict=True))
+        # layer -> (source tensors, their versions and addresses, folded weight and bias)
+        self._folded: dict[int, tuple[tuple, list, tuple[torch.Tensor, torch.Tensor]]] = {}
 
     @property
     def in_channels(self) -> int:
@@ -58,24 +62,25 @@ class MLP(nn.Module):
     def linear_params(self, i: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Weight ``(c_out, c_in)`` and bias of layer ``i``; in eval mode with BatchNorm folded.
 
-        Without autograd the folded pair is cached, keyed by the version counters of the
-        tensors it is made of (any in-place update - an optimiser step, ``load_state_dict`` -
-        refolds): a forward at batch 1 would otherwise spend a good part of its time folding.
+        Without autograd the folded pair is cached, keyed by the tensors it is made of, their
+        version counters (any in-place update - an optimiser step, ``load_state_dict`` -
+        refolds) and storage addresses (``.to()`` replaces a parameter's data): a forward at
+        batch 1 would otherwise spend a good part of its time folding. The sources are read
+        from the modules' parameter dicts (``nn.Module.__getattr__`` costs more than the check).
         """
-        lin = self.linears[i]
-        norm = self.norms[i]
-        if self.training or not isinstance(norm, nn.BatchNorm1d):
+        lin, norm = self._layers[i]
+        if self.training or not self.activated[i]:
             return lin.weight, lin.bias
         if torch.is_grad_enabled():
             return self._fold(i)
-        sources = (lin.weight, lin.bias, norm.weight, norm.bias, norm.running_mean,
-                   norm.running_var)
-        key = tuple((id(t), t._version, t.device, t.dtype) if t is not None else None
-                    for t in sources)
+        lp, np_, nb = lin._parameters, norm._parameters, norm._buffers
+        sources = (lp["weight"], lp["bias"], np_["weight"], np_["bias"], nb["running_mean"],
+                   nb["running_var"])
+        stamp = [None if t is None else (t._version, t.data_ptr()) for t in sources]
         cached = self._folded.get(i)
-        if cached is None or cached[0] != key:
-            cached = self._folded[i] = (key, self._fold(i))
-        return cached[1]
+        if cached is None or cached[1] != stamp or not all(map(operator.is_, cached[0], sources)):
+            cached = self._folded[i] = (sources, stamp, self._fold(i))
+        return cached[2]
 
     def _fold(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Layer ``i``'s Linear with its BatchNorm (running statistics) folded in."""
