@@ -84,7 +84,7 @@ class MLP(nn.Module):
 
     def _fold(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Layer ``i``'s Linear with its BatchNorm (running statistics) folded in."""
-        lin, norm = self.linears[i], self.norms[i]
+        lin, norm = self._layers[i]
         scale = norm.weight * torch.rsqrt(norm.running_var + norm.eps)
         shift = norm.bias - norm.running_mean * scale
         if lin.bias is not None:
