@@ -127,3 +127,39 @@ def test_resume_exact_with_a_real_tracker(tmp_path):
     a, b = _weights(tmp_path / "full" / "last.pt"), _weights(tmp_path / "cut" / "last.pt")
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
+    """``init_weights`` copies a saved tracker's weights into the run's model before step 1 (so
+    zero epochs of training would return them unchanged) and refuses another tracker or config."""
+    trackers = pytest.importorskip("trackers")
+    from test_pretrain_support import fake_tracklets
+
+    from training.config import tracker_config
+    from training.pretrain import Trainer
+    from training.samples import TrackingSamples
+
+    slim = tracker_config("p2b", "slim")
+    source = trackers.make("p2b", **slim)
+    with torch.no_grad():
+        for p in source.parameters():
+            p.add_(0.01)
+    path = trackers.save(source, tmp_path / "start.safetensors")
+    data = TrackingSamples(fake_tracklets(n=2, frames=4), candidates_per_frame=1)
+
+    def trainer(init, **extra):
+        cfg = tiny_config(tmp_path / "run", batch_size=2, model_size="slim",
+                          init_weights=str(init), **extra)
+        return Trainer(cfg, train_data=data, val_fn=False)
+
+    model = trainer(path).model
+    for k, v in source.state_dict().items():
+        assert torch.equal(model.state_dict()[k], v), k
+    with pytest.raises(TrainingError, match="holds a 'p2b' checkpoint, not 'bat'"):
+        trainer(path, tracker="bat")
+    with pytest.raises(TrainingError, match="another tracker config"):
+        trainer(path, tracker_config={"hidden_channels": 32})
+    with pytest.raises(TrainingError, match="no such checkpoint"):
+        trainer(tmp_path / "missing.safetensors")
+    with pytest.raises(ConfigError, match="init_weights"):
+        config_from_dict({"init_weights": " "})

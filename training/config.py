@@ -68,6 +68,9 @@ class TrainConfig:
     tracker: str = "p2b"
     model_size: str = "default"  # default (papers' widths) | slim (see SLIM)
     tracker_config: dict = field(default_factory=dict)  # extra kwargs of trackers.make
+    # start from these weights (a tracker checkpoint file or a shipped checkpoint name, same
+    # tracker and config); a fresh optimizer and schedule, unlike --resume
+    init_weights: str | None = None
     weighting: str = "none"  # none (-U) | decorrelation (-W) | sam (-S)
     # data
     dataset: str = "synthetic"
@@ -149,6 +152,8 @@ class TrainConfig:
             bad("decor_momentum", "must be in [0, 1)")
         if not 0 <= self.decor_memory_ratio < 1:
             bad("decor_memory_ratio", "must be in [0, 1)")
+        if self.init_weights is not None and not self.init_weights.strip():
+            bad("init_weights", "must be a checkpoint file or a shipped checkpoint name, or null")
         if self.grad_clip is not None and not self.grad_clip > 0:
             bad("grad_clip", "must be > 0 or null")
         if self.weighting == "decorrelation" and self.batch_size < 2:

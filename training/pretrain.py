@@ -235,6 +235,8 @@ class Trainer:
             self.pg = dist
         torch.manual_seed(cfg.seed)  # identical initial weights on every rank
         self.model = (model_factory or default_model_factory)(cfg).to(self.device)
+        if cfg.init_weights is not None:
+            self._load_init_weights(cfg.init_weights)
         self.net: torch.nn.Module = self.model
         if self.world > 1:
             from torch.nn.parallel import DistributedDataParallel
@@ -271,6 +273,27 @@ class Trainer:
         self.history: list[dict[str, Any]] = []
         self._tb = None
         self._log = None
+
+    def _load_init_weights(self, source: str) -> None:
+        """Copy the weights of a tracker checkpoint (same tracker, same config) into the model."""
+        from trackers.config import config_to_dict
+        from trackers.registry import CHECKPOINT_DIR, load
+
+        shipped = any((CHECKPOINT_DIR / f"{source}{s}").is_file() for s in (".safetensors", ".pt"))
+        if not (Path(source).is_file() or shipped):
+            raise TrainingError(f"init_weights={source!r}: no such checkpoint file or shipped "
+                                f"checkpoint name")
+        try:
+            start = load(source, expect=self.cfg.tracker)
+        except (ValueError, FileNotFoundError) as exc:
+            raise TrainingError(f"init_weights={source!r}: {exc}") from exc
+        theirs, mine = config_to_dict(start.config), config_to_dict(self.model.config)
+        if theirs != mine:
+            diff = sorted(k for k in set(theirs) | set(mine) if theirs.get(k) != mine.get(k))
+            details = ", ".join(f"{k}: checkpoint {theirs.get(k)!r} vs run {mine.get(k)!r}"
+                                for k in diff)
+            raise TrainingError(f"init_weights={source!r} has another tracker config ({details})")
+        self.model.load_state_dict(start.state_dict())
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict[str, Any]:

@@ -24,7 +24,7 @@ _FLAGS = {
     "seed": "seed", "out": "out", "num_workers": "num_workers", "threads": "num_threads",
     "device": "device", "val_max_tracklets": "val_max_tracklets",
     "val_max_frames": "val_max_frames", "candidates_per_frame": "candidates_per_frame",
-    "model_size": "model_size",
+    "model_size": "model_size", "init_weights": "init_weights",
 }
 
 
@@ -50,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="cap each epoch at this many batches (a fresh random subset)")
     parser.add_argument("--candidates-per-frame", dest="candidates_per_frame", type=int)
     parser.add_argument("--seed", type=int)
+    parser.add_argument("--init-weights", dest="init_weights", metavar="CHECKPOINT",
+                        help="start from these tracker weights (a .safetensors/.pt file or a "
+                             "shipped name such as p2b-kitti1-u); fresh optimizer and schedule")
     parser.add_argument("--out", help="run directory (checkpoints, logs)")
     parser.add_argument("--num-workers", dest="num_workers", type=int)
     parser.add_argument("--threads", type=int, help="torch.set_num_threads")
