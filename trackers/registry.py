@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-__all__ = ["CHECKPOINT_DIR", "available", "load", "make", "save"]
+__all__ = ["CHECKPOINT_DIR", "available", "find_checkpoint", "load", "make", "save"]
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 FORMAT = "pointtrack-tracker"
@@ -142,17 +142,26 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
     return model.to(map_location).eval()
 
 
+def find_checkpoint(name_or_path: str | Path) -> Path | None:
+    """The checkpoint file that ``load`` reads for a file path or a shipped checkpoint name;
+    ``None`` for anything else (a registered tracker name, a missing file)."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    for suffix in (".safetensors", ".pt"):
+        shipped = CHECKPOINT_DIR / f"{name_or_path}{suffix}"
+        if shipped.is_file():
+            return shipped
+    return None
+
+
 def load(name_or_path: str | Path, *, expect: str | None = None, map_location: Any = "cpu"):
     """A tracker from a file path, a shipped checkpoint name (``"p2b-kitti1-w"``) or a
     registered name (``"p2b"``: untrained; ``"previous_box"``: a baseline)."""
-    path = Path(name_or_path)
-    if path.is_file():
-        return load_file(path, expect, map_location)
-    name = str(name_or_path)
-    for suffix in (".safetensors", ".pt"):
-        shipped = CHECKPOINT_DIR / f"{name}{suffix}"
-        if shipped.is_file():
-            return load_file(shipped, expect, map_location)
+    checkpoint = find_checkpoint(name_or_path)
+    if checkpoint is not None:
+        return load_file(checkpoint, expect, map_location)
+    path, name = Path(name_or_path), str(name_or_path)
     if name.lower() in _LEARNED or name.lower() in _BASELINES:
         if expect is not None and name.lower() != expect.lower():
             raise ValueError(f"{name!r} is not a {expect!r} tracker")

@@ -112,6 +112,13 @@ def _identity(cfg: TrainConfig) -> dict[str, Any]:
     return {k: v for k, v in cfg.to_dict().items() if k not in IDENTITY_EXEMPT}
 
 
+def _differences(checkpoint: dict[str, Any], current: dict[str, Any], label: str) -> str:
+    """``"key: checkpoint A vs <label> B, ..."`` for every key whose values differ; "" if none."""
+    keys = sorted(k for k in set(checkpoint) | set(current) if checkpoint.get(k) != current.get(k))
+    return ", ".join(f"{k}: checkpoint {checkpoint.get(k)!r} vs {label} {current.get(k)!r}"
+                     for k in keys)
+
+
 def _dist_info() -> tuple[int, int]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -277,21 +284,19 @@ class Trainer:
     def _load_init_weights(self, source: str) -> None:
         """Copy the weights of a tracker checkpoint (same tracker, same config) into the model."""
         from trackers.config import config_to_dict
-        from trackers.registry import CHECKPOINT_DIR, load
+        from trackers.registry import find_checkpoint, load_file
 
-        shipped = any((CHECKPOINT_DIR / f"{source}{s}").is_file() for s in (".safetensors", ".pt"))
-        if not (Path(source).is_file() or shipped):
+        path = find_checkpoint(source)
+        if path is None:
             raise TrainingError(f"init_weights={source!r}: no such checkpoint file or shipped "
                                 f"checkpoint name")
         try:
-            start = load(source, expect=self.cfg.tracker)
+            start = load_file(path, expect=self.cfg.tracker)
         except (ValueError, FileNotFoundError) as exc:
             raise TrainingError(f"init_weights={source!r}: {exc}") from exc
-        theirs, mine = config_to_dict(start.config), config_to_dict(self.model.config)
-        if theirs != mine:
-            diff = sorted(k for k in set(theirs) | set(mine) if theirs.get(k) != mine.get(k))
-            details = ", ".join(f"{k}: checkpoint {theirs.get(k)!r} vs run {mine.get(k)!r}"
-                                for k in diff)
+        details = _differences(config_to_dict(start.config), config_to_dict(self.model.config),
+                               "run")
+        if details:
             raise TrainingError(f"init_weights={source!r} has another tracker config ({details})")
         self.model.load_state_dict(start.state_dict())
 
@@ -326,11 +331,8 @@ class Trainer:
                 f"this run trains {self.cfg.tracker!r}"
             )
         saved = {k: v for k, v in ckpt["config"].items() if k not in IDENTITY_EXEMPT}
-        mine = _identity(self.cfg)
-        diff = sorted(k for k in set(saved) | set(mine) if saved.get(k) != mine.get(k))
-        if diff:
-            details = ", ".join(f"{k}: checkpoint {saved.get(k)!r} vs now {mine.get(k)!r}"
-                                for k in diff)
+        details = _differences(saved, _identity(self.cfg), "now")
+        if details:
             raise TrainingError(
                 f"refusing to resume from {path}: it was trained with a different config "
                 f"({details})"
