@@ -60,6 +60,19 @@ def test_resume_refuses_other_tracker_or_config(tmp_path):
         _run(tmp_path / "r", epochs=2)
 
 
+def test_resume_reads_a_missing_new_key_as_its_default(tmp_path):
+    """A checkpoint written before a config key existed resumes when the key is at its default
+    (that is what the run did) and refuses when it is not."""
+    _run(tmp_path / "r", epochs=1)
+    path = tmp_path / "r" / "last.pt"
+    ckpt = torch.load(path, weights_only=False)
+    del ckpt["config"]["size_jitter"]
+    torch.save(ckpt, path)
+    with pytest.raises(TrainingError, match="size_jitter: checkpoint 0.0 vs now 0.3"):
+        _run(tmp_path / "r", epochs=2, resume=True, size_jitter=0.3)
+    assert _run(tmp_path / "r", epochs=2, resume=True).epochs_done == 2
+
+
 def test_nan_loss_stops_naming_step_and_samples(tmp_path):
     out = tmp_path / "n"
     _run(out, epochs=1)
@@ -86,6 +99,8 @@ def test_bad_configs_fail_naming_keys(tmp_path):
     assert "lr='fast'" in msg
     with pytest.raises(ConfigError, match="weighting='magic'"):
         config_from_dict({"weighting": "magic"})
+    with pytest.raises(ConfigError, match=r"size_jitter=1\.2: must be in \[0, 1\)"):
+        config_from_dict({"size_jitter": 1.2})
     f = tmp_path / "c.yaml"
     f.write_text("tracker: gpt\nbatchsize: 12\n")
     with pytest.raises(ConfigError, match=r"c.yaml.*unknown keys: batchsize"):

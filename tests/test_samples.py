@@ -8,7 +8,7 @@ import torch
 from test_pretrain_support import fake_tracklets
 from torch.utils.data import DataLoader, Subset
 
-from envs.geometry import box_to_world, points_in_box, rotation_z, wrap_yaw
+from envs.geometry import box_to_world, points_in_box, rotation_z, world_to_box, wrap_yaw
 from envs.observation import crop_box_frame
 from training.samples import TrackingSamples, crop_near
 
@@ -109,3 +109,51 @@ def test_deterministic_across_worker_counts_and_epochs(data):
 def test_no_tracklets_is_an_error():
     with pytest.raises(ValueError, match="no tracklets"):
         TrackingSamples([])
+
+
+def test_size_jitter_is_an_exact_stretch_of_the_scene():
+    base = fake_tracklets(n=3, frames=6)
+    data = TrackingSamples(base, candidates_per_frame=2, seed=3, size_jitter=0.3)
+    stretches = []
+    for index in range(0, len(data), 3):
+        s = {k: v.numpy().astype(np.float64) for k, v in data[index].items()}
+        k, t, _ = data.locate(index)
+        tr = data.tracklets[k]
+        gt = tr.boxes[t]
+        stretch = s["search_box"][3:6] / gt[3:6]
+        stretches.append(stretch)
+        assert ((stretch >= 0.7 - 1e-6) & (stretch <= 1.3 + 1e-6)).all()
+        # one stretch per sample: the template's size input and the search box agree
+        assert np.allclose(s["size"], tr.boxes[0][3:6] * stretch, rtol=1e-5)
+        ref = _reference_box(np.array([*gt[:3], *s["search_box"][3:6], gt[6]]), s["search_box"])
+        world = box_to_world(s["search"], ref)
+        real = s["search_labels"] > 0.5
+        # undo the stretch in the GT box frame: every point is a point of the real scan ...
+        undone = box_to_world(
+            (world_to_box(world[real], gt) / stretch).astype(np.float64), gt)
+        scan = tr.points(t).astype(np.float64)
+        nearest = np.abs(undone[:, None, :] - scan[None]).max(-1).min(1)
+        assert nearest.max() < 1e-4
+        # ... and the labelled ones are exactly the real target's points
+        assert points_in_box(undone, gt).all()
+    stretches = np.array(stretches)
+    assert stretches.std(0).min() > 0.1  # independent per sample and per axis
+
+
+def test_size_jitter_is_deterministic_and_off_by_default():
+    tracklets = fake_tracklets(n=2, frames=5)
+    a = TrackingSamples(tracklets, seed=1, size_jitter=0.3)
+    b = TrackingSamples(tracklets, seed=1, size_jitter=0.3)
+    off = TrackingSamples(tracklets, seed=1)
+    plain = TrackingSamples(tracklets, seed=1, size_jitter=0.0)
+    for index in (0, 7, 13):
+        for k, v in a[index].items():
+            assert torch.equal(v, b[index][k]), k
+            assert torch.equal(off[index][k], plain[index][k]), k
+        assert not torch.equal(a[index]["search_box"], off[index]["search_box"])
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.0, 1.5])
+def test_size_jitter_out_of_range_is_an_error(bad):
+    with pytest.raises(ValueError, match="size_jitter"):
+        TrackingSamples(fake_tracklets(n=1), size_jitter=bad)

@@ -81,6 +81,9 @@ class TrainConfig:
     setting: str | None = "kitti-1"  # class-agnostic setting (observed categories are trained)
     category: str | None = None  # class-specific mode: train on this one category instead
     candidates_per_frame: int = 4
+    # object resizing, scale per box axis ~ U(1 - a, 1 + a); 0 = off (the papers' samples); see
+    # training.samples
+    size_jitter: float = 0.0
     # optimisation
     epochs: int = 36
     batch_size: int = 48
@@ -148,6 +151,8 @@ class TrainConfig:
                     "decor_decay_every"):
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
+        if not 0 <= self.size_jitter < 1:
+            bad("size_jitter", "must be in [0, 1)")
         if not 0 <= self.decor_momentum < 1:
             bad("decor_momentum", "must be in [0, 1)")
         if not 0 <= self.decor_memory_ratio < 1:

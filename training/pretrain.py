@@ -138,7 +138,8 @@ def default_train_data(cfg: TrainConfig):
         cfg.dataset, "train", setting=cfg.setting, category=cfg.category, preset=cfg.preset,
         sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
     )
-    data = TrackingSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed)
+    data = TrackingSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed,
+                           size_jitter=cfg.size_jitter)
     data.root = str(root)  # logged: a synthetic world's folder name carries its generator hash
     return data
 
@@ -330,7 +331,9 @@ class Trainer:
                 f"refusing to resume: {path} is a checkpoint of tracker {ckpt.get('tracker')!r}, "
                 f"this run trains {self.cfg.tracker!r}"
             )
-        saved = {k: v for k, v in ckpt["config"].items() if k not in IDENTITY_EXEMPT}
+        # a key added to TrainConfig after the checkpoint was written ran at its default then
+        saved = {**_identity(TrainConfig()),
+                 **{k: v for k, v in ckpt["config"].items() if k not in IDENTITY_EXEMPT}}
         details = _differences(saved, _identity(self.cfg), "now")
         if details:
             raise TrainingError(

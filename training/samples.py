@@ -11,6 +11,14 @@ One sample is ``(tracklet, frame t >= 1, candidate c)``:
   Gaussian noise (sigma 1 m in x and y, yaw variance 5 deg², i.e. sigma sqrt(5)°; z and size
   unchanged), scale 1.25 plus 2 m, in the perturbed (reference) box's frame.
 * **size** (3,): the target's l, w, h from frame 0 (as the env gives it).
+* **object resizing** (``size_jitter = a > 0``, off by default; not in the papers): before
+  anything else, each sample draws one scale per box axis, ``s ~ U(1 - a, 1 + a)^3``, and every
+  frame it reads is stretched by ``s`` along that frame's ground-truth box axes about the box
+  centre (so the object and its surroundings grow or shrink together and it stays on the
+  ground), the boxes' ``l, w, h`` multiplied by ``s``. Class-agnostic training sees only the
+  observed categories' sizes; ``000_…`` Sec. V suggests generating more diverse samples, and
+  resizing makes the network read the target's extent from the template instead of from a
+  category prior (without it, a car seen from behind is voted to a van's centre).
 * **motion** (4,): the ground-truth offset of frame ``t - 1`` relative to frame ``t - 2`` in the
   latter's box frame (what the env reports as the last motion for a perfect tracker), zeros at
   ``t = 1`` (the env's first step).
@@ -39,7 +47,13 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from envs.geometry import boxes_in_frame, offset_between, points_in_box
+from envs.geometry import (
+    box_to_world,
+    boxes_in_frame,
+    offset_between,
+    points_in_box,
+    world_to_box,
+)
 from envs.observation import (
     SEARCH_OFFSET_M,
     SEARCH_SCALE,
@@ -50,7 +64,7 @@ from envs.observation import (
     resample_into,
 )
 
-__all__ = ["TrackingSamples", "crop_near", "load_tracklets"]
+__all__ = ["TrackingSamples", "crop_near", "load_tracklets", "stretch_about_box"]
 
 JITTER_XY_M = 0.3
 JITTER_YAW_RAD = math.radians(1.5)
@@ -68,6 +82,28 @@ def crop_near(points: np.ndarray, box: np.ndarray, scale: float, offset_m: float
     return crop_box_frame(points[near], box, scale, offset_m)
 
 
+def stretch_about_box(
+    points: np.ndarray, box: np.ndarray, scale: np.ndarray, reach_m: float
+) -> np.ndarray:
+    """The points within ``reach_m`` (after stretching) of the box centre, stretched by ``scale``
+    ``(3,)`` along the box's own axes about its centre; ``(N, 3)`` LiDAR frame -> ``(M, 3)``.
+
+    A point whose stretched xy distance from the centre is at most ``reach_m`` started within
+    ``reach_m / min(scale[:2])``; only those are transformed (a cheap square pre-filter), so any
+    crop that reaches no further than ``reach_m`` from the centre sees every point it should.
+    """
+    r = reach_m / float(min(scale[0], scale[1])) + 1e-3
+    near = (np.abs(points[:, 0] - box[0]) <= r) & (np.abs(points[:, 1] - box[1]) <= r)
+    local = world_to_box(points[near], box) * scale.astype(points.dtype)
+    return box_to_world(local, box)
+
+
+def _crop_reach_m(box: np.ndarray, scale: float, offset_m: float, centre_shift_m: float) -> float:
+    """How far from ``box``'s centre a crop around a box moved by ``centre_shift_m`` reaches."""
+    return math.hypot(0.5 * scale * box[3] + offset_m, 0.5 * scale * box[4] + offset_m) + (
+        centre_shift_m)
+
+
 class TrackingSamples(Dataset):
     """A ``torch.utils.data.Dataset`` of supervised tracking samples (see the module docstring).
 
@@ -75,6 +111,7 @@ class TrackingSamples(Dataset):
         tracklets: the tracklets to sample from (already restricted to the trained categories).
         candidates_per_frame: samples per frame (candidate 0 has an unjittered previous box).
         seed: base seed; with the epoch and the index it determines every random draw.
+        size_jitter: ``a`` of the object resizing (see the module docstring); 0 turns it off.
     """
 
     def __init__(
@@ -85,12 +122,16 @@ class TrackingSamples(Dataset):
         seed: int = 0,
         template_size: int = TEMPLATE_SIZE,
         search_size: int = SEARCH_SIZE,
+        size_jitter: float = 0.0,
     ) -> None:
         self.tracklets = [tr for tr in tracklets if len(tr) >= 2]
         if not self.tracklets:
             raise ValueError("no tracklets with at least 2 frames to build training samples from")
         if candidates_per_frame < 1:
             raise ValueError("candidates_per_frame must be >= 1")
+        if not 0.0 <= size_jitter < 1.0:
+            raise ValueError(f"size_jitter must be in [0, 1), got {size_jitter}")
+        self.size_jitter = float(size_jitter)
         self.candidates = candidates_per_frame
         self.seed = int(seed)
         self.epoch = 0
@@ -123,6 +164,11 @@ class TrackingSamples(Dataset):
         tr = self.tracklets[k]
         rng = np.random.default_rng([self.seed, self.epoch, int(index)])
         boxes = np.asarray(tr.boxes, dtype=np.float64)
+        stretch = None
+        if self.size_jitter > 0:
+            stretch = rng.uniform(1.0 - self.size_jitter, 1.0 + self.size_jitter, 3)
+            boxes = boxes.copy()
+            boxes[:, 3:6] *= stretch
         box0, prev_gt, gt = boxes[0], boxes[t - 1], boxes[t]
 
         # template: first GT + (jittered) previous GT, each in its own frame
@@ -137,9 +183,17 @@ class TrackingSamples(Dataset):
         ref[6] = (ref[6] + math.pi) % (2 * math.pi) - math.pi
         prev[6] = (prev[6] + math.pi) % (2 * math.pi) - math.pi
 
-        first_crop = crop_near(tr.points(0), box0, TEMPLATE_SCALE, 0.0)
-        prev_crop = crop_near(tr.points(t - 1), prev, TEMPLATE_SCALE, 0.0)
-        search_crop = crop_near(tr.points(t), ref, SEARCH_SCALE, SEARCH_OFFSET_M)
+        first_pts, prev_pts, search_pts = tr.points(0), tr.points(t - 1), tr.points(t)
+        if stretch is not None:
+            first_pts = stretch_about_box(
+                first_pts, box0, stretch, _crop_reach_m(box0, TEMPLATE_SCALE, 0.0, 0.0))
+            prev_pts = stretch_about_box(prev_pts, prev_gt, stretch, _crop_reach_m(
+                prev_gt, TEMPLATE_SCALE, 0.0, float(np.hypot(*(prev[:2] - prev_gt[:2])))))
+            search_pts = stretch_about_box(search_pts, gt, stretch, _crop_reach_m(
+                gt, SEARCH_SCALE, SEARCH_OFFSET_M, float(np.hypot(*(ref[:2] - gt[:2])))))
+        first_crop = crop_near(first_pts, box0, TEMPLATE_SCALE, 0.0)
+        prev_crop = crop_near(prev_pts, prev, TEMPLATE_SCALE, 0.0)
+        search_crop = crop_near(search_pts, ref, SEARCH_SCALE, SEARCH_OFFSET_M)
         # resampled as the env's observations are: one call, the template halves in place
         half = self.template_size // 2
         template = np.empty((self.template_size, 3), np.float32)

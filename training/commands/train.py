@@ -49,6 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--iters-per-epoch", dest="iters_per_epoch", type=int,
                         help="cap each epoch at this many batches (a fresh random subset)")
     parser.add_argument("--candidates-per-frame", dest="candidates_per_frame", type=int)
+    parser.add_argument("--size-jitter", dest="size_jitter", type=float, metavar="A",
+                        help="resize each sample's object by U(1-A, 1+A) per axis (default 0)")
     parser.add_argument("--seed", type=int)
     parser.add_argument("--init-weights", dest="init_weights", metavar="CHECKPOINT",
                         help="start from these tracker weights (a .safetensors/.pt file or a "
