@@ -18,7 +18,8 @@ One sample is ``(tracklet, frame t >= 1, candidate c)``:
   ground), the boxes' ``l, w, h`` multiplied by ``s``. Class-agnostic training sees only the
   observed categories' sizes; ``000_…`` Sec. V suggests generating more diverse samples, and
   resizing makes the network read the target's extent from the template instead of from a
-  category prior (without it, a car seen from behind is voted to a van's centre).
+  category prior (measured without it: cars seen from behind are voted 0.4-0.55 m beyond
+  their centre, as if they were vans; see the README).
 * **motion** (4,): the ground-truth offset of frame ``t - 1`` relative to frame ``t - 2`` in the
   latter's box frame (what the env reports as the last motion for a perfect tracker), zeros at
   ``t = 1`` (the env's first step).
@@ -100,8 +101,8 @@ def stretch_about_box(
 
 def _crop_reach_m(box: np.ndarray, scale: float, offset_m: float, centre_shift_m: float) -> float:
     """How far from ``box``'s centre a crop around a box moved by ``centre_shift_m`` reaches."""
-    return math.hypot(0.5 * scale * box[3] + offset_m, 0.5 * scale * box[4] + offset_m) + (
-        centre_shift_m)
+    half_diagonal = math.hypot(0.5 * scale * box[3] + offset_m, 0.5 * scale * box[4] + offset_m)
+    return half_diagonal + centre_shift_m
 
 
 class TrackingSamples(Dataset):
