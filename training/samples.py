@@ -73,12 +73,15 @@ SEARCH_SIGMA_XY_M = 1.0
 SEARCH_SIGMA_YAW_RAD = math.radians(math.sqrt(5.0))
 
 
+def _reach_m(box: np.ndarray, scale: float, offset_m: float) -> float:
+    """How far (xy) from its centre the crop of ``box`` (scaled, plus ``offset_m``) reaches."""
+    return math.hypot(0.5 * scale * box[3] + offset_m, 0.5 * scale * box[4] + offset_m)
+
+
 def crop_near(points: np.ndarray, box: np.ndarray, scale: float, offset_m: float) -> np.ndarray:
     """Exactly ``crop_box_frame(points, box, scale, offset_m)``, faster on whole scans: a cheap
     axis-aligned pre-filter (a superset, order kept) before the exact crop."""
-    hl = 0.5 * scale * box[3] + offset_m
-    hw = 0.5 * scale * box[4] + offset_m
-    r = math.hypot(hl, hw) + 1e-3
+    r = _reach_m(box, scale, offset_m) + 1e-3
     near = (np.abs(points[:, 0] - box[0]) <= r) & (np.abs(points[:, 1] - box[1]) <= r)
     return crop_box_frame(points[near], box, scale, offset_m)
 
@@ -99,10 +102,15 @@ def stretch_about_box(
     return box_to_world(local, box)
 
 
-def _crop_reach_m(box: np.ndarray, scale: float, offset_m: float, centre_shift_m: float) -> float:
-    """How far from ``box``'s centre a crop around a box moved by ``centre_shift_m`` reaches."""
-    half_diagonal = math.hypot(0.5 * scale * box[3] + offset_m, 0.5 * scale * box[4] + offset_m)
-    return half_diagonal + centre_shift_m
+def _crop_stretched(points: np.ndarray, gt: np.ndarray, crop_box: np.ndarray, scale: float,
+                    offset_m: float, stretch: np.ndarray | None) -> np.ndarray:
+    """``crop_near`` of ``crop_box`` after stretching the scene about the frame's GT box (none
+    when ``stretch`` is None); only the points the crop can reach are stretched."""
+    if stretch is not None:
+        shift_m = float(np.hypot(*(crop_box[:2] - gt[:2])))
+        points = stretch_about_box(points, gt, stretch,
+                                   _reach_m(crop_box, scale, offset_m) + shift_m)
+    return crop_near(points, crop_box, scale, offset_m)
 
 
 class TrackingSamples(Dataset):
@@ -184,17 +192,10 @@ class TrackingSamples(Dataset):
         ref[6] = (ref[6] + math.pi) % (2 * math.pi) - math.pi
         prev[6] = (prev[6] + math.pi) % (2 * math.pi) - math.pi
 
-        first_pts, prev_pts, search_pts = tr.points(0), tr.points(t - 1), tr.points(t)
-        if stretch is not None:
-            first_pts = stretch_about_box(
-                first_pts, box0, stretch, _crop_reach_m(box0, TEMPLATE_SCALE, 0.0, 0.0))
-            prev_pts = stretch_about_box(prev_pts, prev_gt, stretch, _crop_reach_m(
-                prev_gt, TEMPLATE_SCALE, 0.0, float(np.hypot(*(prev[:2] - prev_gt[:2])))))
-            search_pts = stretch_about_box(search_pts, gt, stretch, _crop_reach_m(
-                gt, SEARCH_SCALE, SEARCH_OFFSET_M, float(np.hypot(*(ref[:2] - gt[:2])))))
-        first_crop = crop_near(first_pts, box0, TEMPLATE_SCALE, 0.0)
-        prev_crop = crop_near(prev_pts, prev, TEMPLATE_SCALE, 0.0)
-        search_crop = crop_near(search_pts, ref, SEARCH_SCALE, SEARCH_OFFSET_M)
+        first_crop = _crop_stretched(tr.points(0), box0, box0, TEMPLATE_SCALE, 0.0, stretch)
+        prev_crop = _crop_stretched(tr.points(t - 1), prev_gt, prev, TEMPLATE_SCALE, 0.0, stretch)
+        search_crop = _crop_stretched(tr.points(t), gt, ref, SEARCH_SCALE, SEARCH_OFFSET_M,
+                                      stretch)
         # resampled as the env's observations are: one call, the template halves in place
         half = self.template_size // 2
         template = np.empty((self.template_size, 3), np.float32)
