@@ -234,12 +234,14 @@ class Trainer:
             )
         self.local_batch = cfg.batch_size // self.world
         self.pg = None
+        self.owns_process_group = False
         if self.world > 1:
             import torch.distributed as dist
 
             if not dist.is_initialized():
                 backend = "nccl" if self.device.type == "cuda" else "gloo"
                 dist.init_process_group(backend)
+                self.owns_process_group = True
             self.pg = dist
         torch.manual_seed(cfg.seed)  # identical initial weights on every rank
         self.model = (model_factory or default_model_factory)(cfg).to(self.device)
@@ -531,6 +533,13 @@ class Trainer:
         self.model.train()
         return result
 
+    def close(self) -> None:
+        """Destroy the process group this trainer created: left to the interpreter's exit,
+        gloo's threads can race the teardown and abort a rank after a finished run."""
+        if self.owns_process_group:
+            self.pg.destroy_process_group()
+            self.owns_process_group = False
+
     def run(self, resume: bool = False) -> TrainResult:
         cfg = self.cfg
         last = self.out / "last.pt"
@@ -605,7 +614,10 @@ def train(
     """Run (or resume) one pretraining run; see the module docstring. ``val_fn=False`` disables
     validation; the factories let tests use stand-in models and data."""
     trainer = Trainer(cfg, model_factory=model_factory, train_data=train_data, val_fn=val_fn)
-    return trainer.run(resume=resume)
+    try:
+        return trainer.run(resume=resume)
+    finally:
+        trainer.close()
 
 
 def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
