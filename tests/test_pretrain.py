@@ -178,3 +178,92 @@ def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
         trainer(tmp_path / "missing.safetensors")
     with pytest.raises(ConfigError, match="init_weights"):
         config_from_dict({"init_weights": " "})
+
+
+def test_every_train_flag_reaches_the_config():
+    """Each ``pointtrack train`` flag sets its config key (``--size-jitter`` was once parsed and
+    then dropped, so runs that asked for resizing trained without it)."""
+    import argparse
+
+    from training.commands.train import add_arguments, build_config
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    not_config = {"help", "config", "set", "resume", "no_progress", "export"}
+    # flag destination -> (value given on the command line, expected config key and value)
+    given = {
+        "tracker": ("gpt", "tracker", "gpt"), "setting": ("kitti-2", "setting", "kitti-2"),
+        "category": ("Car", "category", "Car"), "model_size": ("slim", "model_size", "slim"),
+        "weighting": ("sam", "weighting", "sam"), "dataset": ("kitti", "dataset", "kitti"),
+        "preset": ("small", "preset", "small"), "sensor": ("hdl32", "sensor", "hdl32"),
+        "data_root": ("/data/k", "data_root", "/data/k"), "world_seed": ("4", "world_seed", 4),
+        "epochs": ("5", "epochs", 5), "batch_size": ("6", "batch_size", 6),
+        "lr": ("0.002", "lr", 0.002), "iters_per_epoch": ("7", "iters_per_epoch", 7),
+        "candidates_per_frame": ("2", "candidates_per_frame", 2),
+        "size_jitter": ("0.3", "size_jitter", 0.3), "ema_decay": ("0.99", "ema_decay", 0.99),
+        "seed": ("9", "seed", 9), "init_weights": ("p2b-kitti1-u", "init_weights", "p2b-kitti1-u"),
+        "out": ("runs/z", "out", "runs/z"), "num_workers": ("1", "num_workers", 1),
+        "threads": ("2", "num_threads", 2), "device": ("cuda:1", "device", "cuda:1"),
+        "val_max_tracklets": ("3", "val_max_tracklets", 3),
+        "val_max_frames": ("11", "val_max_frames", 11),
+    }
+    flags = {a.dest: a.option_strings[0] for a in parser._actions if a.dest not in not_config}
+    missing = set(flags) - set(given)
+    assert not missing, f"give the new flags a value here: {missing}"
+    argv = [part for dest, flag in flags.items() for part in (flag, given[dest][0])]
+    cfg = build_config(parser.parse_args(argv))
+    for dest in flags:
+        _, key, expected = given[dest]
+        assert getattr(cfg, key) == expected, dest
+
+
+def test_weight_ema_matches_a_hand_computation():
+    from training.averaging import WeightEMA
+
+    model = torch.nn.BatchNorm1d(2)  # a parameter, float buffers and an integer buffer
+    with torch.no_grad():
+        model.weight.fill_(1.0)
+    ema = WeightEMA(model, decay=0.9)
+    expected = 1.0
+    for n, value in enumerate([3.0, -1.0, 5.0, 2.0], start=1):
+        with torch.no_grad():
+            model.weight.fill_(value)
+        model.num_batches_tracked.fill_(n)
+        d = min(0.9, (1 + n) / (10 + n))  # warm-up: 2/11, 3/12, 4/13, 5/14 (all < 0.9)
+        expected = d * expected + (1 - d) * value
+        ema.update(model)
+        assert torch.allclose(ema.shadow["weight"], torch.full((2,), expected)), n
+        assert int(ema.shadow["num_batches_tracked"]) == n
+    ema.decay, ema.updates = 0.5, 100  # past the warm-up: the configured decay
+    ema.update(model)
+    assert torch.allclose(ema.shadow["weight"], torch.full((2,), 0.5 * expected + 0.5 * 2.0))
+    with pytest.raises(ValueError, match="decay"):
+        WeightEMA(model, decay=1.0)
+
+
+def test_ema_run_validates_and_exports_the_average_and_resumes_exactly(tmp_path):
+    from training.pretrain import load_weights
+
+    seen = []
+
+    def val_fn(model):
+        seen.append({k: v.clone() for k, v in model.state_dict().items()})
+        return {"success": float(len(seen)), "precision": 0.0}
+
+    _run(tmp_path / "full", epochs=2, ema_decay=0.8, val_fn=val_fn)
+    last = torch.load(tmp_path / "full" / "last.pt", weights_only=True)
+    shadow, model = last["ema"]["shadow"], last["model"]
+    assert any(not torch.equal(shadow[k], model[k]) for k in model)
+    for k in model:  # validation saw the average, and export reads it
+        assert torch.equal(seen[-1][k], shadow[k]), k
+        assert torch.equal(load_weights(tmp_path / "full" / "last.pt")[0][k], shadow[k]), k
+    _run(tmp_path / "cut", epochs=1, ema_decay=0.8)
+    _run(tmp_path / "cut", epochs=2, ema_decay=0.8, resume=True)
+    cut = torch.load(tmp_path / "cut" / "last.pt", weights_only=True)
+    for k in model:
+        assert torch.equal(cut["model"][k], model[k]), k
+        assert torch.equal(cut["ema"]["shadow"][k], shadow[k]), k
+    with pytest.raises(TrainingError, match="ema_decay: checkpoint 0.8 vs now 0.0"):
+        _run(tmp_path / "cut", epochs=3, resume=True)
+    with pytest.raises(ConfigError, match=r"ema_decay=1\.0: must be in \[0, 1\)"):
+        config_from_dict({"ema_decay": 1.0})

@@ -92,6 +92,9 @@ class TrainConfig:
     lr_gamma: float = 0.2
     weight_decay: float = 0.0
     grad_clip: float | None = None
+    # exponential moving average of the weights (0 = off); validated and exported when on, see
+    # training.averaging
+    ema_decay: float = 0.0
     iters_per_epoch: int | None = None  # cap: a fresh random subset of samples every epoch
     seed: int = 0
     # SAM (-S)
@@ -153,6 +156,8 @@ class TrainConfig:
                 bad(key, "must be >= 0")
         if not 0 <= self.size_jitter < 1:
             bad("size_jitter", "must be in [0, 1)")
+        if not 0 <= self.ema_decay < 1:
+            bad("ema_decay", "must be in [0, 1) (0 = off)")
         if not 0 <= self.decor_momentum < 1:
             bad("decor_momentum", "must be in [0, 1)")
         if not 0 <= self.decor_memory_ratio < 1:

@@ -10,14 +10,18 @@ SAM (-S).
 * Validation every ``val_every`` epochs: the env's OPE Success/Precision on the val split,
   through ``training.evaluate.evaluate``, on the setting's **observed** categories only (the unseen
   ones are never looked at before test). The checkpoint with the best val Success is kept.
+* ``ema_decay > 0`` keeps an exponential moving average of the weights
+  (:class:`training.averaging.WeightEMA`); validation, ``best.pt``'s selection and
+  :func:`load_weights` (so ``--export``) then use the averaged weights.
 * Checkpoints (``last.pt`` after every epoch, ``best.pt`` at the best val Success) hold the
-  weights, optimizer, scheduler, decorrelation memory, RNG states (torch, numpy, python), epoch,
-  step and config; they are written atomically (temporary file + ``os.replace``) and read with
-  ``torch.load(weights_only=True)``. ``resume=True`` continues from ``last.pt``; every random
-  draw depends only on ``(seed, epoch, sample index)`` and the torch generators (the global one
-  and a tracker's own ``model.generator`` for point sampling) are reseeded at every epoch, so a
-  resumed run ends with exactly the weights of an uninterrupted one (CPU). A checkpoint of
-  another tracker or config is refused, naming the differing keys.
+  weights, their average (when on), optimizer, scheduler, decorrelation memory, RNG states
+  (torch, numpy, python), epoch, step and config; they are written atomically (temporary
+  file + ``os.replace``) and read with ``torch.load(weights_only=True)``. ``resume=True``
+  continues from ``last.pt``; every random draw depends only on ``(seed, epoch, sample index)``
+  and the torch generators (the global one and a tracker's own ``model.generator`` for point
+  sampling) are reseeded at every epoch, so a resumed run ends with exactly the weights of an
+  uninterrupted one (CPU). A checkpoint of another tracker or config is refused, naming the
+  differing keys.
 * A non-finite loss stops the run with :class:`TrainingError` naming the step and the samples;
   the last good checkpoint is left as it was.
 * Data parallel: under ``torchrun --nproc_per_node N`` each process takes ``batch_size / N`` of
@@ -45,6 +49,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Subset
 
+from training.averaging import WeightEMA
 from training.config import IDENTITY_EXEMPT, TrainConfig
 from training.sam import SAM
 from training.samples import split_batch
@@ -247,6 +252,8 @@ class Trainer:
         self.model = (model_factory or default_model_factory)(cfg).to(self.device)
         if cfg.init_weights is not None:
             self._load_init_weights(cfg.init_weights)
+        self.ema = WeightEMA(self.model, cfg.ema_decay) if cfg.ema_decay > 0 else None
+        self._averaged: torch.nn.Module | None = None  # eval copy holding the EMA weights
         self.net: torch.nn.Module = self.model
         if self.world > 1:
             from torch.nn.parallel import DistributedDataParallel
@@ -313,6 +320,7 @@ class Trainer:
             "optimizer": self.base_opt.state_dict(),
             "scheduler": self.scheduler.state_dict(),
             "decorrelation": self.decor.state_dict() if self.decor else {},
+            "ema": self.ema.state_dict() if self.ema else {},
             "rng": _rng_state(),
             "epoch": self.epoch,
             "step": self.step,
@@ -347,6 +355,8 @@ class Trainer:
         self.scheduler.load_state_dict(ckpt["scheduler"])
         if self.decor is not None:
             self.decor.load_state_dict(ckpt["decorrelation"])
+        if self.ema is not None:
+            self.ema.load_state_dict(ckpt["ema"])
         _set_rng_state(ckpt["rng"])
         self.epoch = int(ckpt["epoch"])
         self.step = int(ckpt["step"])
@@ -496,6 +506,8 @@ class Trainer:
                 if cfg.grad_clip:
                     torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
                 self.base_opt.step()
+            if self.ema is not None:
+                self.ema.update(self.model)
             self.step += 1
             n_batches += 1
             values = {k: float(v.detach().mean()) for k, v in losses.items()}
@@ -524,12 +536,23 @@ class Trainer:
         mean["epoch_wall_s"] = wall
         return mean
 
+    def validated_model(self) -> torch.nn.Module:
+        """The model that validation sees: the weight average when ``ema_decay > 0``."""
+        if self.ema is None:
+            return self.model
+        if self._averaged is None:
+            import copy
+
+            self._averaged = copy.deepcopy(self.model)
+        return self.ema.copy_to(self._averaged)
+
     def validate(self) -> dict[str, float] | None:
         if self.val_fn is None:
             return None
-        self.model.eval()
+        model = self.validated_model()
+        model.eval()
         with torch.no_grad():
-            result = self.val_fn(self.model)
+            result = self.val_fn(model)
         self.model.train()
         return result
 
@@ -621,6 +644,8 @@ def train(
 
 
 def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """Model weights and config of a training checkpoint (``best.pt`` / ``last.pt``)."""
+    """The validated weights and the config of a training checkpoint (``best.pt`` /
+    ``last.pt``): the weight average when the run kept one, else the model's weights."""
     ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    return ckpt["model"], ckpt["config"]
+    average = ckpt.get("ema") or {}
+    return average.get("shadow") or ckpt["model"], ckpt["config"]

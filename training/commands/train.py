@@ -15,17 +15,9 @@ from __future__ import annotations
 
 import argparse
 
-# flag -> config key (flags default to None so only the ones given override the YAML file)
-_FLAGS = {
-    "tracker": "tracker", "setting": "setting", "category": "category",
-    "weighting": "weighting", "dataset": "dataset", "preset": "preset", "sensor": "sensor",
-    "data_root": "data_root", "world_seed": "world_seed", "epochs": "epochs",
-    "batch_size": "batch_size", "lr": "lr", "iters_per_epoch": "iters_per_epoch",
-    "seed": "seed", "out": "out", "num_workers": "num_workers", "threads": "num_threads",
-    "device": "device", "val_max_tracklets": "val_max_tracklets",
-    "val_max_frames": "val_max_frames", "candidates_per_frame": "candidates_per_frame",
-    "model_size": "model_size", "init_weights": "init_weights",
-}
+# flags whose destination is not the config key of the same name; every other flag whose
+# destination is a TrainConfig field sets that field (so no flag can be silently dropped)
+_RENAMED = {"threads": "num_threads"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -51,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--candidates-per-frame", dest="candidates_per_frame", type=int)
     parser.add_argument("--size-jitter", dest="size_jitter", type=float, metavar="A",
                         help="resize each sample's object by U(1-A, 1+A) per axis (default 0)")
+    parser.add_argument("--ema-decay", dest="ema_decay", type=float, metavar="D",
+                        help="validate and export an exponential moving average of the weights "
+                             "with this decay per step (default 0 = off)")
     parser.add_argument("--seed", type=int)
     parser.add_argument("--init-weights", dest="init_weights", metavar="CHECKPOINT",
                         help="start from these tracker weights (a .safetensors/.pt file or a "
@@ -75,8 +70,9 @@ def build_config(args: argparse.Namespace):
     from training.config import ConfigError, TrainConfig, config_from_dict, load_config, parse_value
 
     cfg = load_config(args.config) if args.config else TrainConfig()
-    values = {key: getattr(args, flag) for flag, key in _FLAGS.items()
-              if getattr(args, flag, None) is not None}
+    fields = set(TrainConfig().to_dict())
+    values = {_RENAMED.get(dest, dest): value for dest, value in vars(args).items()
+              if value is not None and _RENAMED.get(dest, dest) in fields}
     if args.category and args.setting is None:
         values["setting"] = None
     if args.no_progress:
