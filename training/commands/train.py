@@ -14,6 +14,7 @@ Precedence: built-in defaults < ``--config FILE`` (YAML, keys of ``training.conf
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 # flags whose destination is not the config key of the same name; every other flag whose
 # destination is a TrainConfig field sets that field (so no flag can be silently dropped)
@@ -70,7 +71,7 @@ def build_config(args: argparse.Namespace):
     from training.config import ConfigError, TrainConfig, config_from_dict, load_config, parse_value
 
     cfg = load_config(args.config) if args.config else TrainConfig()
-    fields = set(TrainConfig().to_dict())
+    fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {_RENAMED.get(dest, dest): value for dest, value in vars(args).items()
               if value is not None and _RENAMED.get(dest, dest) in fields}
     if args.category and args.setting is None:
