@@ -369,8 +369,9 @@ class TrackingEnv(gym.Env):
     (512 from frame 0), ``"previous"`` (512 from the previous frame), ``"all"`` (the crops of
     frame 0 and of every previous prediction, each in its own box frame, merged and resampled to
     512 — P2B's "all previous results"). Point sets are resampled with ``self.np_random``
-    (duplicates when too few, a random subset when too many); an empty set gives zeros and
-    ``info["empty_template"]`` / ``info["empty_search"]`` say so.
+    (duplicates when too few, a random subset when too many), or, when ``episode_seed`` is set,
+    with a generator seeded by ``(episode_seed, tracklet id)`` at every reset; an empty set gives
+    zeros and ``info["empty_template"]`` / ``info["empty_search"]`` say so.
 
     ## Action Space
     ``Box(-max_action, max_action, (4,), float32)``: ``(dx, dy, dz, dyaw)`` in metres and radians
@@ -416,6 +417,11 @@ class TrackingEnv(gym.Env):
     - ``sampling``, ``template_mode``, ``reference`` (``"prediction"`` default, ``"previous_gt"``,
       ``"current_gt"``: the box the search region is cropped around, Table 7 of ``002_…``),
       ``reward``, ``max_action``, ``render_mode`` (``None`` or ``"rgb_array"``).
+    - ``episode_seed``: ``None`` (default: episodes draw from ``self.np_random`` one after the
+      other) or an int: every episode draws its resampling from its own generator seeded by
+      ``(episode_seed, tracklet id)``, so what it observes for given actions depends only on its
+      tracklet — not on the episodes before it, the tracklet order or filter, or the vector
+      sub-env that runs it. Settable between episodes (``training.evaluate`` sets it).
     - ``scan_transform``: see :data:`ScanTransform` (the weather hook). If it has an ``info``
       attribute, that value is reported as ``info["weather"]``.
     - ``corridor_m``: margin (m) of the per-tracklet corridor cache: each frame of a tracklet
@@ -451,6 +457,7 @@ class TrackingEnv(gym.Env):
         corridor_m: float | None = 2.0,
         cell_m: float = 1.0,
         cache_mb: float = 512.0,
+        episode_seed: int | None = None,
     ) -> None:
         _check_choice("sampling", sampling, SAMPLING_MODES)
         _check_choice("template_mode", template_mode, TEMPLATE_MODES)
@@ -515,6 +522,7 @@ class TrackingEnv(gym.Env):
         self.cell_m = float(cell_m)
         self.cache_mb = float(cache_mb)
         self._tracklet_order: list[int] | None = None
+        self.episode_seed = episode_seed
 
         self.action_space = spaces.Box(
             -a_max.astype(np.float32), a_max.astype(np.float32), (4,), np.float32
@@ -565,6 +573,19 @@ class TrackingEnv(gym.Env):
     def tracklet_lengths(self) -> list[int]:
         """Frames of each served tracklet (episode ``i`` has ``tracklet_lengths[i] - 1`` steps)."""
         return [len(tr) for tr in self.tracklets]
+
+    @property
+    def episode_seed(self) -> int | None:
+        """Seed of the per-episode resampling generators (``None``: ``self.np_random``)."""
+        return self._episode_seed
+
+    @episode_seed.setter
+    def episode_seed(self, seed: int | None) -> None:
+        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int | np.integer)):
+            raise TypeError(f"episode_seed must be None or an int; got {seed!r}")
+        if seed is not None and seed < 0:
+            raise ValueError(f"episode_seed must be non-negative; got {seed}")
+        self._episode_seed = None if seed is None else int(seed)
 
     @property
     def tracklet_order(self) -> list[int]:
@@ -856,6 +877,11 @@ class TrackingEnv(gym.Env):
         self._index = index
         self._entry = self._scans(index)
         self._observed = bool(self.is_observed(tr.category))
+        if self._episode_seed is None:
+            self._resample_rng = self.np_random
+        else:  # the id's bytes, not the index: indices change with the category filter
+            key = [self._episode_seed, *str(tr.tracklet_id).encode()]
+            self._resample_rng = np.random.default_rng(key)
         box0 = np.asarray(tr.boxes[0], dtype=np.float64).copy()
         self._size0 = box0[3:6].copy()
         self._size_box = self._size0.tolist()
@@ -907,7 +933,7 @@ class TrackingEnv(gym.Env):
         else:
             crops = self._all_crops
             sets, outs = [np.concatenate(crops) if len(crops) > 1 else crops[0]], [template]
-        *counts, n_search = resample_into([*sets, search_pts], [*outs, search], self.np_random)
+        *counts, n_search = resample_into([*sets, search_pts], [*outs, search], self._resample_rng)
         n_template = sum(counts)
         self._ref = ref
         self._search_crop = search_pts

@@ -11,7 +11,7 @@ Report (a JSON-able dict)::
     {"tracker": name, "categories": {cat: {"success", "precision", "frames", "tracklets",
      "observed", "success_curve", "precision_curve"}}, "observed": {...}, "unseen": {...},
      "mean": {...}, "tracker_fps": frames per second spent in act(), "frames": int,
-     "tracklets": int, "wall_s": float, "env": {...}, "per_tracklet": [{...}, ...]}
+     "tracklets": int, "wall_s": float, "env": {...}, "per_tracklet": [{...}, ...] (by tracklet id)}
 
 Success / precision are percent; a group without frames scores NaN (``null`` in JSON).
 """
@@ -109,7 +109,11 @@ def evaluate(
             wrapped observations; actions are passed through the wrappers), or a Gymnasium vector
             env of them (``NEXT_STEP`` autoreset, the default): the tracklets are spread over the
             sub-envs and ``act`` gets ``(B, ...)`` batches.
-        seed: seed of the first reset (the resampling of point sets).
+        seed: seeds the resampling of point sets: each episode draws from its own generator
+            seeded by ``(seed, tracklet id)`` (the env's ``episode_seed``, restored afterwards),
+            so a tracklet's result depends on the tracker, the env and this seed only — not on
+            ``num_envs``, ``tracklets`` or the order (up to last-bit differences a batched
+            tracker may show between batch sizes).
         tracklets: indices of the tracklets to run (default: all).
         name: the tracker's name in the report (default: ``tracker.name`` or its class).
         progress: show a tqdm progress bar (or pass a tqdm-like factory).
@@ -130,12 +134,22 @@ def evaluate(
                 "num_envs > 1 needs an unwrapped TrackingEnv; for wrapped envs pass a vector env"
             )
         owned = env = gym.vector.SyncVectorEnv([env.clone for _ in range(num_envs)])
-    if isinstance(env, gym.vector.VectorEnv):
-        acc, frames, act_s, env_info = _run_vector(tracker, env, seed, tracklets, progress, name)
-    else:
-        acc, frames, act_s, env_info = _run_single(tracker, env, seed, tracklets, progress, name)
-    if owned is not None:
-        owned.close()
+    vector = isinstance(env, gym.vector.VectorEnv)
+    saved = env.get_attr("episode_seed") if vector else [env.unwrapped.episode_seed]
+    run = _run_vector if vector else _run_single
+    try:
+        if vector:
+            env.set_attr("episode_seed", seed)
+        else:
+            env.unwrapped.episode_seed = seed
+        acc, frames, act_s, env_info = run(tracker, env, seed, tracklets, progress, name)
+    finally:
+        if owned is not None:
+            owned.close()
+        elif vector:
+            env.set_attr("episode_seed", list(saved))
+        else:
+            env.unwrapped.episode_seed = saved[0]
     report: dict[str, Any] = {"tracker": name}
     report.update(acc.report(curves=True))
     report["tracker_fps"] = frames / act_s if act_s > 0 else float("inf")
@@ -152,7 +166,7 @@ def evaluate(
             "success": r.success,
             "precision": r.precision,
         }
-        for r in acc.results
+        for r in sorted(acc.results, key=lambda r: str(r.tracklet_id))  # layout-independent
     ]
     if out_dir is not None:
         out = Path(out_dir)

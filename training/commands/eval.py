@@ -32,7 +32,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=1,
         help="run N sub-envs (SyncVectorEnv) so the tracker acts on batches",
     )
-    parser.add_argument("--eval-seed", type=int, default=0, help="seed of the point resampling")
+    parser.add_argument(
+        "--eval-seed", type=int, default=0,
+        help="seed of the point resampling (per tracklet: results do not depend on --num-envs)",
+    )
     parser.add_argument("--max-tracklets", type=int, default=None, help="evaluate the first N only")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --weather, --weather-levels, --weather-seed, --no-analysis (training.robustness, issue 7)
