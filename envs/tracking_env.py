@@ -880,7 +880,7 @@ class TrackingEnv(gym.Env):
         if self._episode_seed is None:
             self._resample_rng = self.np_random
         else:  # the id's bytes, not the index: indices change with the category filter
-            key = [self._episode_seed, *str(tr.tracklet_id).encode()]
+            key = [self._episode_seed, *tr.tracklet_id.encode()]
             self._resample_rng = np.random.default_rng(key)
         box0 = np.asarray(tr.boxes[0], dtype=np.float64).copy()
         self._size0 = box0[3:6].copy()

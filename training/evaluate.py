@@ -18,10 +18,11 @@ Success / precision are percent; a group without frames scores NaN (``null`` in 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -134,22 +135,13 @@ def evaluate(
                 "num_envs > 1 needs an unwrapped TrackingEnv; for wrapped envs pass a vector env"
             )
         owned = env = gym.vector.SyncVectorEnv([env.clone for _ in range(num_envs)])
-    vector = isinstance(env, gym.vector.VectorEnv)
-    saved = env.get_attr("episode_seed") if vector else [env.unwrapped.episode_seed]
-    run = _run_vector if vector else _run_single
+    run = _run_vector if isinstance(env, gym.vector.VectorEnv) else _run_single
     try:
-        if vector:
-            env.set_attr("episode_seed", seed)
-        else:
-            env.unwrapped.episode_seed = seed
-        acc, frames, act_s, env_info = run(tracker, env, seed, tracklets, progress, name)
+        with _episodes_seeded(env, seed):
+            acc, frames, act_s, env_info = run(tracker, env, seed, tracklets, progress, name)
     finally:
         if owned is not None:
             owned.close()
-        elif vector:
-            env.set_attr("episode_seed", list(saved))
-        else:
-            env.unwrapped.episode_seed = saved[0]
     report: dict[str, Any] = {"tracker": name}
     report.update(acc.report(curves=True))
     report["tracker_fps"] = frames / act_s if act_s > 0 else float("inf")
@@ -173,6 +165,26 @@ def evaluate(
         save_report(report, out / f"{_slug(name)}.json")
         plot_curves({name: report}, out, prefix=f"{_slug(name)}_")
     return report
+
+
+@contextlib.contextmanager
+def _episodes_seeded(env: gym.Env | gym.vector.VectorEnv, seed: int) -> Iterator[None]:
+    """Set the ``episode_seed`` of ``env`` (or of every sub-env) for the block, then restore it."""
+    if isinstance(env, gym.vector.VectorEnv):
+        saved = list(env.get_attr("episode_seed"))
+        env.set_attr("episode_seed", seed)
+        try:
+            yield
+        finally:
+            env.set_attr("episode_seed", saved)
+    else:
+        u = env.unwrapped
+        saved_one = u.episode_seed
+        u.episode_seed = seed
+        try:
+            yield
+        finally:
+            u.episode_seed = saved_one
 
 
 def _env_info(u: Any) -> dict[str, Any]:
