@@ -12,6 +12,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "generate": ("generate", "generate a synthetic LiDAR world in the KITTI tracking layout"),
     "eval": ("eval", "evaluate a tracker step-wise in the environment (OPE Success/Precision)"),
     "train": ("train", "pretrain P2B / BAT / GPT (plain, decorrelation-weighted, SAM)"),
+    "select": ("select", "rank checkpoints by observed Success pooled over validation worlds"),
     "finetune": ("finetune", "RL fine-tuning of a pretrained tracker with stable-baselines3"),
     "bench": ("bench", "run the speed benchmarks and print their numbers"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import os
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -112,9 +113,10 @@ def evaluate(
             sub-envs and ``act`` gets ``(B, ...)`` batches.
         seed: seeds the resampling of point sets: each episode draws from its own generator
             seeded by ``(seed, tracklet id)`` (the env's ``episode_seed``, restored afterwards),
-            so a tracklet's result depends on the tracker, the env and this seed only — not on
-            ``num_envs``, ``tracklets`` or the order (up to last-bit differences a batched
-            tracker may show between batch sizes).
+            so with one env a tracklet's result depends on the tracker, the env and this seed
+            only — not on ``tracklets`` or the order. Batched (``num_envs > 1``), a learned
+            tracker's forward can differ in the last bit with the batch layout, and its closed
+            loop can amplify that into another trajectory.
         tracklets: indices of the tracklets to run (default: all).
         name: the tracker's name in the report (default: ``tracker.name`` or its class).
         progress: show a tqdm progress bar (or pass a tqdm-like factory).
@@ -353,10 +355,15 @@ def _json_safe(x: Any) -> Any:
 
 
 def save_report(report: Mapping[str, Any], path: str | Path) -> Path:
-    """Write a report (or ``{name: report}``) as JSON (NaN / inf -> ``null``); returns the path."""
+    """Write a report (or ``{name: report}``) as JSON (NaN / inf -> ``null``); returns the path.
+
+    Written to a temporary file and renamed, so a killed run never leaves a truncated report (the
+    selection in :mod:`training.selection` reuses reports as a cache)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_json_safe(dict(report)), indent=2) + "\n")
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps(_json_safe(dict(report)), indent=2) + "\n")
+    os.replace(tmp, path)
     return path
 
 

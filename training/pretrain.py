@@ -645,7 +645,30 @@ def train(
 
 def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """The validated weights and the config of a training checkpoint (``best.pt`` /
-    ``last.pt``): the weight average when the run kept one, else the model's weights."""
-    ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    ``last.pt``): the weight average when the run kept one, else the model's weights.
+
+    Raises ``ValueError`` naming ``path`` for a file that is not a training checkpoint."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several unrelated types for foreign files
+        raise ValueError(f"{path} is not a training checkpoint: {exc}") from exc
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"{path} is not a training checkpoint (format "
+                         f"{ckpt.get('format') if isinstance(ckpt, dict) else None!r}, "
+                         f"expected {CHECKPOINT_FORMAT})")
     average = ckpt.get("ema") or {}
     return average.get("shadow") or ckpt["model"], ckpt["config"]
+
+
+def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
+    """The tracker (CPU, eval mode) holding the validated weights of a training checkpoint
+    (:func:`load_weights`), ready for ``trackers.save`` or evaluation."""
+    import trackers
+    from training.config import tracker_config
+
+    weights, config = load_weights(path)
+    kwargs = tracker_config(config["tracker"], config.get("model_size", "default"),
+                            config.get("tracker_config"))
+    model = trackers.make(config["tracker"], **kwargs)
+    model.load_state_dict(weights)
+    return model.eval()

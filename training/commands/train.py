@@ -91,18 +91,11 @@ def export(run_dir, path: str) -> None:
     from pathlib import Path
 
     import trackers
-    from training.pretrain import load_weights
+    from training.pretrain import tracker_from_checkpoint
 
     run_dir = Path(run_dir)
     src = run_dir / "best.pt" if (run_dir / "best.pt").exists() else run_dir / "last.pt"
-    weights, config = load_weights(src)
-    from training.config import tracker_config
-
-    kwargs = tracker_config(config["tracker"], config.get("model_size", "default"),
-                            config.get("tracker_config"))
-    model = trackers.make(config["tracker"], **kwargs)
-    model.load_state_dict(weights)
-    trackers.save(model, path)
+    trackers.save(tracker_from_checkpoint(src), path)
     print(f"exported {src} -> {path}")
 
 

@@ -1,0 +1,155 @@
+"""Checkpoint selection (``training.selection``, ``pointtrack select``): parts, pooling, ranking,
+the per-part cache, and the refusals."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from envs.metrics import precision_auc, success_auc
+from training.selection import (
+    DEFAULT_PARTS,
+    SelectionConfig,
+    ValPart,
+    check_parts,
+    pooled,
+    score_candidates,
+)
+
+
+def test_val_part_parse_round_trip_and_errors():
+    assert ValPart.parse("2:val") == ValPart(2, "val")
+    assert ValPart.parse(" 13 : test ") == ValPart(13, "test")
+    assert str(ValPart(3, "test")) == "3:test"
+    assert [str(p) for p in DEFAULT_PARTS] == [
+        "0:val", "1:val", "1:test", "2:val", "2:test", "3:val", "3:test"]
+    for bad in ("2", "two:val", "2:dev", "-1:val", "2:val:x"):
+        with pytest.raises(ValueError, match="validation part"):
+            ValPart.parse(bad)
+
+
+def test_check_parts_guards_the_training_world():
+    check_parts([ValPart(0, "val"), ValPart(1, "test"), ValPart(1, "train")], train_world_seed=0)
+    with pytest.raises(ValueError, match="0:test.*benchmark"):
+        check_parts([ValPart(1, "val"), ValPart(0, "test")], train_world_seed=0)
+    with pytest.raises(ValueError, match="5:train.*training data"):
+        check_parts([ValPart(5, "train")], train_world_seed=5)
+    with pytest.raises(ValueError, match="listed twice"):
+        check_parts([ValPart(1, "val"), ValPart(1, "val")], train_world_seed=0)
+    with pytest.raises(ValueError, match="no validation parts"):
+        check_parts([], train_world_seed=0)
+    with pytest.raises(ValueError, match="0:test"):
+        SelectionConfig(parts=(ValPart(0, "test"),))
+
+
+def test_pooled_scores_equal_the_scores_of_the_pooled_frames():
+    rng = np.random.default_rng(0)
+    parts = [(rng.uniform(0, 1, n), rng.uniform(0, 3, n)) for n in (7, 30, 1)]
+    entries = [
+        {"success": success_auc(iou), "precision": precision_auc(err), "frames": len(iou)}
+        for iou, err in parts
+    ]
+    got = pooled(entries + [{"success": float("nan"), "precision": float("nan"), "frames": 0}])
+    all_iou = np.concatenate([p[0] for p in parts])
+    all_err = np.concatenate([p[1] for p in parts])
+    assert got["frames"] == 38
+    assert got["success"] == pytest.approx(success_auc(all_iou), abs=1e-9)
+    assert got["precision"] == pytest.approx(precision_auc(all_err), abs=1e-9)
+    assert math.isnan(pooled([])["success"])
+
+
+@pytest.fixture(scope="module")
+def tiny_config():
+    pytest.importorskip("envs.synthetic")
+    # one env: a learned tracker's result per tracklet is then independent of which other
+    # tracklets are evaluated (batched forwards can differ in the last bits with the batch layout,
+    # and the closed loop amplifies that), so the check below can be exact
+    return SelectionConfig(preset="tiny", parts=(ValPart(0, "val"), ValPart(1, "test")),
+                           num_envs=1)
+
+
+def test_score_candidates_pools_observed_categories_and_ranks(tiny_config, tmp_path,
+                                                              one_torch_thread):
+    from envs.tracking_env import make_synthetic_env
+    from training.evaluate import evaluate, load_tracker
+
+    candidates = ["previous_box", "p2b-kitti1-u"]
+    rows = score_candidates(candidates, tiny_config, cache_dir=tmp_path)
+    assert [r["success"] for r in rows] == sorted((r["success"] for r in rows), reverse=True)
+    for row in rows:
+        # independently: each part scored on the full setting (all categories), observed group
+        entries = []
+        for part in tiny_config.parts:
+            env = make_synthetic_env(preset="tiny", seed=part.world_seed, split=part.split,
+                                     setting="kitti-1")
+            full = evaluate(load_tracker(row["candidate"]), env, seed=0)["observed"]
+            env.close()
+            got = row["parts"][str(part)]
+            assert got["frames"] == full["frames"] > 0
+            assert got["success"] == pytest.approx(full["success"], abs=1e-9)
+            assert got["precision"] == pytest.approx(full["precision"], abs=1e-9)
+            entries.append(full)
+        frames = sum(e["frames"] for e in entries)
+        assert row["frames"] == frames
+        assert row["success"] == pytest.approx(
+            sum(e["success"] * e["frames"] for e in entries) / frames, abs=1e-9)
+
+
+def test_score_candidates_reuses_its_cache_and_rescores_on_a_new_key(tiny_config, tmp_path,
+                                                                     monkeypatch, one_torch_thread):
+    import training.evaluate
+
+    first = score_candidates(["previous_box"], tiny_config, cache_dir=tmp_path)
+
+    def no_evaluation(*args, **kwargs):
+        raise AssertionError("evaluated although the cache holds this report")
+
+    monkeypatch.setattr(training.evaluate, "evaluate", no_evaluation)
+    assert score_candidates(["previous_box"], tiny_config, cache_dir=tmp_path) == first
+    other_seed = SelectionConfig(preset="tiny", parts=tiny_config.parts, eval_seed=1, num_envs=1)
+    with pytest.raises(AssertionError, match="evaluated although"):
+        score_candidates(["previous_box"], other_seed, cache_dir=tmp_path)
+    # a torn cache file is not trusted either
+    cached = next(tmp_path.rglob("*.json"))
+    cached.write_text(cached.read_text()[:50])
+    with pytest.raises(AssertionError, match="evaluated although"):
+        score_candidates(["previous_box"], tiny_config, cache_dir=tmp_path)
+
+
+def test_cli_select_refuses_bad_input_naming_it(tmp_path):
+    from training.cli import main
+
+    with pytest.raises(SystemExit, match="validation part 0:test"):
+        main(["select", "previous_box", "--parts", "1:val", "0:test"])
+    with pytest.raises(SystemExit, match="'2:dev'"):
+        main(["select", "previous_box", "--parts", "2:dev"])
+    with pytest.raises(SystemExit, match="candidate 'no-such.safetensors'"):
+        main(["select", "no-such.safetensors", "--parts", "1:val"])
+    with pytest.raises(SystemExit, match="listed twice"):
+        main(["select", "previous_box", "previous_box", "--parts", "1:val"])
+
+
+def test_load_candidate_reads_training_checkpoints_and_names_bad_files(tmp_path):
+    import torch
+
+    import trackers
+    from training.config import tracker_config
+    from training.pretrain import CHECKPOINT_FORMAT
+    from training.selection import load_candidate
+
+    model = trackers.make("p2b", **tracker_config("p2b", "slim"))
+    shadow = {k: v + 1.0 if v.is_floating_point() else v for k, v in model.state_dict().items()}
+    config = {"tracker": "p2b", "model_size": "slim", "tracker_config": None}
+    torch.save({"format": CHECKPOINT_FORMAT, "model": model.state_dict(), "config": config,
+                "ema": {"shadow": shadow}}, tmp_path / "best.pt")
+    loaded = load_candidate(str(tmp_path / "best.pt"))
+    for k, v in loaded.state_dict().items():  # the validated (averaged) weights
+        assert torch.equal(v, shadow[k]), k
+    trackers.save(model, tmp_path / "model.pt")  # a tracker file named .pt still loads
+    for k, v in load_candidate(str(tmp_path / "model.pt")).state_dict().items():
+        assert torch.equal(v, model.state_dict()[k]), k
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="candidate '.*junk.pt'"):
+        load_candidate(str(tmp_path / "junk.pt"))

@@ -1,0 +1,72 @@
+"""`pointtrack select`: rank candidate checkpoints on validation data pooled over several worlds.
+
+Example (the rule the shipped checkpoints are chosen by, ``docs/checkpoints.md``)::
+
+    pointtrack select runs/a/best.pt runs/a/last.pt p2b-kitti1-w \\
+        --setting kitti-1 --out runs/select-p2b-w
+
+See :mod:`training.selection` for what is scored and why.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Declare this command's flags."""
+    from training.selection import DEFAULT_PARTS
+
+    parser.add_argument(
+        "candidates", nargs="+", metavar="CANDIDATE",
+        help="training checkpoints (RUN/best.pt, RUN/last.pt: their validated weights), tracker "
+        "files or shipped checkpoint names",
+    )
+    parser.add_argument(
+        "--parts", nargs="+", default=[str(p) for p in DEFAULT_PARTS], metavar="WORLD:SPLIT",
+        help="synthetic world splits pooled into one score (default: %(default)s)",
+    )
+    parser.add_argument("--setting", default="kitti-1",
+                        help="its observed categories are scored (default: kitti-1)")
+    parser.add_argument("--preset", default="default", help="synthetic preset (default: default)")
+    parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (default: hdl64)")
+    parser.add_argument(
+        "--train-world", type=int, default=0, metavar="SEED",
+        help="world seed the candidates were trained on: its train and test splits are refused",
+    )
+    parser.add_argument("--eval-seed", type=int, default=0, help="seed of the point resampling")
+    parser.add_argument("--num-envs", type=int, default=8, help="sub-envs per evaluation")
+    parser.add_argument(
+        "--out", default=None, metavar="DIR",
+        help="write DIR/selection.json; per-part reports are kept in DIR/parts for reruns",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from training.evaluate import save_report
+    from training.selection import SelectionConfig, ValPart, format_ranking, score_candidates
+
+    try:
+        config = SelectionConfig(
+            setting=args.setting, preset=args.preset, sensor=args.sensor,
+            parts=tuple(ValPart.parse(p) for p in args.parts), train_world_seed=args.train_world,
+            eval_seed=args.eval_seed, num_envs=args.num_envs,
+        )
+        out = Path(args.out) if args.out else None
+        rows = score_candidates(
+            args.candidates, config, cache_dir=out / "parts" if out else None,
+            progress=not args.no_progress, log=print,
+        )
+    except ValueError as exc:
+        raise SystemExit(f"pointtrack select: {exc}") from exc
+    print(format_ranking(rows))
+    print(f"selected: {rows[0]['candidate']} (pooled observed Success {rows[0]['success']:.2f})")
+    if out is not None:
+        summary = {"config": {**vars(config), "parts": [str(p) for p in config.parts]},
+                   "ranking": rows}
+        path = save_report(summary, out / "selection.json")
+        print(f"wrote {path}")
+    return 0

@@ -1,0 +1,272 @@
+"""Checkpoint selection on validation data pooled over several synthetic worlds.
+
+One world's val split holds a few tens of tracklets, and checkpoints of one model are often a few
+Success points apart, so a ranking on it is mostly a ranking of which tracklets happen to be
+there. Worlds with other seeds come from the same generator and no run trains on them, so their
+val *and* test splits are fresh validation data. :func:`score_candidates` evaluates each
+candidate on every part, pools Success / Precision over the frames of the setting's **observed**
+categories and ranks the candidates. Two things are never scored: the unseen categories (the
+class-agnostic study measures them, so choosing on them would leak the held-out category) and the
+test split of the training world (the benchmark).
+
+Pooling is exact: Success and Precision are means over thresholds of the fraction of frames that
+pass, so the score of the pooled frames is the frames-weighted mean of the parts' scores.
+
+Every (part, candidate) report is cached under ``cache_dir`` (written atomically, keyed by the
+checkpoint's SHA-256 and the evaluation settings), so an interrupted selection resumes where it
+stopped and adding a candidate scores only the new one.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = [
+    "DEFAULT_PARTS",
+    "SelectionConfig",
+    "ValPart",
+    "check_parts",
+    "format_ranking",
+    "load_candidate",
+    "pooled",
+    "score_candidates",
+]
+
+_SPLITS = ("train", "val", "test")
+
+
+@dataclass(frozen=True)
+class ValPart:
+    """One split of one synthetic world, written ``"WORLD_SEED:SPLIT"`` (``"2:val"``)."""
+
+    world_seed: int
+    split: str
+
+    @classmethod
+    def parse(cls, text: str) -> ValPart:
+        """``"2:val"`` -> ``ValPart(2, "val")``; ``ValueError`` naming ``text`` otherwise."""
+        match = re.fullmatch(r"\s*(\d+)\s*:\s*(\w+)\s*", str(text))
+        if match is None or match.group(2) not in _SPLITS:
+            raise ValueError(
+                f"validation part {text!r}: expected WORLD_SEED:SPLIT with SPLIT one of "
+                f"{', '.join(_SPLITS)} (e.g. '2:val')"
+            )
+        return cls(int(match.group(1)), match.group(2))
+
+    def __str__(self) -> str:
+        return f"{self.world_seed}:{self.split}"
+
+
+DEFAULT_PARTS: tuple[ValPart, ...] = tuple(
+    ValPart.parse(p) for p in ("0:val", "1:val", "1:test", "2:val", "2:test", "3:val", "3:test")
+)
+
+
+def check_parts(parts: Sequence[ValPart], train_world_seed: int) -> None:
+    """Refuse an empty or repeated part list and any part of the training world but its val split
+    (its train split is what the candidates learnt from; its test split is the benchmark)."""
+    if not parts:
+        raise ValueError("no validation parts given")
+    seen: set[ValPart] = set()
+    for part in parts:
+        if part in seen:
+            raise ValueError(f"validation part {part} is listed twice")
+        seen.add(part)
+        if part.world_seed == train_world_seed and part.split != "val":
+            role = "the benchmark" if part.split == "test" else "the training data"
+            raise ValueError(
+                f"validation part {part}: world {train_world_seed} is the training world and its "
+                f"{part.split} split is {role}; use its val split or another world's splits"
+            )
+
+
+@dataclass(frozen=True)
+class SelectionConfig:
+    """What the candidates are scored on.
+
+    Attributes:
+        setting: class-agnostic setting (``"kitti-1"``) or ``"class-specific:<Category>"``; only
+            its observed categories are scored.
+        preset, sensor: the synthetic worlds (see ``envs.synthetic``).
+        parts: the world splits pooled into one score.
+        train_world_seed: the world the candidates were trained on (guards its train/test).
+        eval_seed: seed of the point resampling (``training.evaluate.evaluate``).
+        num_envs: sub-envs per evaluation, so a tracker acts on batches.
+    """
+
+    setting: str = "kitti-1"
+    preset: str = "default"
+    sensor: str = "hdl64"
+    parts: tuple[ValPart, ...] = field(default=DEFAULT_PARTS)
+    train_world_seed: int = 0
+    eval_seed: int = 0
+    num_envs: int = 8
+
+    def __post_init__(self) -> None:
+        check_parts(self.parts, self.train_world_seed)
+        if self.num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+
+
+def pooled(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """Pool report entries (each ``{"success", "precision", "frames"}``) over their frames.
+
+    Returns ``{"success", "precision", "frames"}``; entries without frames do not count.
+    """
+    frames = sum(float(e["frames"]) for e in entries)
+    if frames <= 0:
+        return {"success": float("nan"), "precision": float("nan"), "frames": 0.0}
+    return {
+        key: sum(float(e[key]) * float(e["frames"]) for e in entries if e["frames"]) / frames
+        for key in ("success", "precision")
+    } | {"frames": frames}
+
+
+def load_candidate(candidate: str) -> Any:
+    """A tracker from a training checkpoint (``best.pt`` / ``last.pt``: the weights its run
+    validated, see ``training.pretrain.load_weights``) or anything ``trackers.load`` takes.
+
+    Raises ``ValueError`` naming the candidate when neither reads it."""
+    from training.evaluate import load_tracker
+    from training.pretrain import tracker_from_checkpoint
+
+    path = Path(candidate)
+    try:
+        if path.suffix == ".pt" and path.is_file():
+            try:
+                return tracker_from_checkpoint(path)
+            except ValueError:
+                pass  # a tracker file saved as .pt: trackers.load reads it
+        return load_tracker(candidate)
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"candidate {candidate!r}: {exc}") from exc
+
+
+def _candidate_digest(candidate: str) -> str:
+    """SHA-256 of a checkpoint file, or the name itself for a baseline / registered tracker."""
+    from trackers.registry import find_checkpoint
+
+    path = find_checkpoint(candidate)
+    if path is None:
+        return f"name:{candidate}"
+    return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _cache_path(cache_dir: Path, part: ValPart, candidate: str, digest: str) -> Path:
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(candidate).name)[:60]
+    return cache_dir / f"w{part.world_seed}-{part.split}" / f"{stem}-{digest[-12:]}.json"
+
+
+def score_candidates(
+    candidates: Sequence[str],
+    config: SelectionConfig | None = None,
+    *,
+    cache_dir: str | Path | None = None,
+    progress: bool = False,
+    log: Callable[[str], None] | None = None,
+) -> list[dict[str, Any]]:
+    """Score every candidate on every part of ``config`` and rank them.
+
+    Args:
+        candidates: training checkpoints (``OUT/best.pt``), tracker files, shipped checkpoint
+            names or tracker names (:func:`load_candidate`).
+        config: the parts, setting and evaluation settings (default: :class:`SelectionConfig`).
+        cache_dir: keep each (part, candidate) report here and reuse it when its key matches.
+        progress: tqdm bars while evaluating.
+        log: called with one line per evaluated or reused (part, candidate).
+
+    Returns:
+        One row per candidate, best first (ties keep the given order): ``{"candidate", "success",
+        "precision", "frames", "parts": {"2:val": {"success", "precision", "frames"}, ...}}``,
+        Success / Precision in % over the observed categories.
+    """
+    from envs.data import get_setting
+    from envs.tracking_env import make_synthetic_env
+    from training.evaluate import evaluate, save_report
+
+    config = config if config is not None else SelectionConfig()
+    if not candidates:
+        raise ValueError("no candidates given")
+    if len(set(candidates)) != len(candidates):
+        raise ValueError(f"a candidate is listed twice: {list(candidates)}")
+    observed = list(get_setting(config.setting).observed)
+    # all of them before any scoring, so a typo fails in a second
+    loaded = {c: load_candidate(c) for c in candidates}
+    digests = {c: _candidate_digest(c) for c in candidates}
+    cache = Path(cache_dir) if cache_dir is not None else None
+    per_part: dict[str, dict[str, dict[str, float]]] = {c: {} for c in candidates}
+    for part in config.parts:
+        env = None
+        for candidate in candidates:
+            key = {
+                "candidate": candidate, "digest": digests[candidate], "part": str(part),
+                "setting": config.setting, "preset": config.preset, "sensor": config.sensor,
+                "eval_seed": config.eval_seed,
+            }
+            path = _cache_path(cache, part, candidate, digests[candidate]) if cache else None
+            report = _read_cached(path, key)
+            if report is None:
+                if env is None:
+                    env = make_synthetic_env(
+                        preset=config.preset, sensor=config.sensor, seed=part.world_seed,
+                        split=part.split, setting=config.setting, categories=observed,
+                    )
+                report = evaluate(
+                    loaded[candidate], env, seed=config.eval_seed, name=candidate,
+                    progress=progress, num_envs=config.num_envs,
+                )
+                report = {"selection_key": key, "observed": report["observed"],
+                          "per_tracklet": report["per_tracklet"]}
+                if path is not None:
+                    save_report(report, path)
+                how = "scored"
+            else:
+                how = "cached"
+            entry = report["observed"]
+            per_part[candidate][str(part)] = {k: float(entry[k]) for k in
+                                              ("success", "precision", "frames")}
+            if log is not None:
+                log(f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
+                    f"over {int(entry['frames'])} frames")
+        if env is not None:
+            env.close()
+    rows = [
+        {"candidate": c} | pooled(list(per_part[c].values())) | {"parts": per_part[c]}
+        for c in candidates
+    ]
+    return sorted(rows, key=lambda r: -r["success"])
+
+
+def _read_cached(path: Path | None, key: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The cached report at ``path`` if it was made with ``key``; ``None`` otherwise."""
+    if path is None or not path.is_file():
+        return None
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    return report if report.get("selection_key") == dict(key) else None
+
+
+def format_ranking(rows: Sequence[Mapping[str, Any]]) -> str:
+    """A text table of :func:`score_candidates` rows: rank, pooled Success / Precision, frames and
+    each part's Success."""
+    if not rows:
+        return ""
+    parts = list(rows[0]["parts"])
+    name_w = max(len("candidate"), *(len(str(r["candidate"])) for r in rows))
+    head = f"{'#':>2} {'candidate':<{name_w}} | {'Succ':>5} / {'Prec':>5} | {'frames':>6} | "
+    lines = [head + " ".join(f"{p:>7}" for p in parts)]
+    for i, r in enumerate(rows, 1):
+        lines.append(
+            f"{i:>2} {r['candidate']:<{name_w}} | {r['success']:5.1f} / {r['precision']:5.1f} | "
+            f"{int(r['frames']):6d} | "
+            + " ".join(f"{r['parts'][p]['success']:7.1f}" for p in parts)
+        )
+    return "\n".join(lines)
