@@ -111,6 +111,9 @@ def test_score_candidates_reuses_its_cache_and_rescores_on_a_new_key(tiny_config
     other_seed = SelectionConfig(preset="tiny", parts=tiny_config.parts, eval_seed=1, num_envs=1)
     with pytest.raises(AssertionError, match="evaluated although"):
         score_candidates(["previous_box"], other_seed, cache_dir=tmp_path)
+    batched = SelectionConfig(preset="tiny", parts=tiny_config.parts, num_envs=2)
+    with pytest.raises(AssertionError, match="evaluated although"):
+        score_candidates(["previous_box"], batched, cache_dir=tmp_path)
     # a torn cache file is not trusted either
     cached = next(tmp_path.rglob("*.json"))
     cached.write_text(cached.read_text()[:50])

@@ -13,8 +13,9 @@ Pooling is exact: Success and Precision are means over thresholds of the fractio
 pass, so the score of the pooled frames is the frames-weighted mean of the parts' scores.
 
 Every (part, candidate) report is cached under ``cache_dir`` (written atomically, keyed by the
-checkpoint's SHA-256 and the evaluation settings), so an interrupted selection resumes where it
-stopped and adding a candidate scores only the new one.
+checkpoint's SHA-256 and the evaluation settings, ``num_envs`` included: batching can change a
+learned tracker's result, see ``training.evaluate.evaluate``), so an interrupted selection
+resumes where it stopped and adding a candidate scores only the new one.
 """
 
 from __future__ import annotations
@@ -207,7 +208,7 @@ def score_candidates(
             key = {
                 "candidate": candidate, "digest": digests[candidate], "part": str(part),
                 "setting": config.setting, "preset": config.preset, "sensor": config.sensor,
-                "eval_seed": config.eval_seed,
+                "eval_seed": config.eval_seed, "num_envs": config.num_envs,
             }
             path = _cache_path(cache, part, candidate, digests[candidate]) if cache else None
             report = _read_cached(path, key)
