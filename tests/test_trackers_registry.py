@@ -15,7 +15,7 @@ from torch import nn
 
 import trackers
 from trackers import registry
-from trackers.base import MatchingConfig, MatchingTracker
+from trackers.base import SLIM_BACKBONE, MatchingConfig, MatchingTracker
 from trackers.layers import MLP, grouped_max
 from trackers.toy import toy_batch
 
@@ -48,11 +48,10 @@ class XCorrFusion(nn.Module):
 class XCorr(MatchingTracker):
     config_class = XCorrConfig
     default_loss_weights = {"vote": 1.0, "seed": 0.2, "objectness": 1.5, "box": 0.2}
-    sizes = {"default": {}, "slim": SMALL}
+    sizes = {"default": {}, "slim": {"backbone": SLIM_BACKBONE, "head": {"vote_channels": 64}}}
 
     def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:
-        hidden = self.config.hidden_channels
-        return XCorrFusion(in_channels, hidden), hidden
+        return XCorrFusion(in_channels, self.config.hidden_channels), self.config.hidden_channels
 
     def fuse(self, t_xyz, t_feat, s_xyz, s_feat, batch):
         return self.fusion(t_feat, s_feat), {}

@@ -80,7 +80,6 @@ class SetAbstraction(nn.Module):
         self.radius, self.k = radius, k
         self.ragged_train = ragged_train
         self.fast_eval = True  # eval: ragged groups (see the module doc)
-        self.in_channels = in_channels
         self.mlp = MLP([in_channels + 3, *channels])
 
     def point_terms(self, xyz: torch.Tensor, feats: torch.Tensor | None,

@@ -66,14 +66,6 @@ class MLP(nn.Module):
         # layer -> (source tensors, their versions and addresses, folded weight and bias)
         self._folded: dict[int, tuple[tuple, list, tuple[torch.Tensor, torch.Tensor]]] = {}
 
-    @property
-    def in_channels(self) -> int:
-        return self.channels[0]
-
-    @property
-    def out_channels(self) -> int:
-        return self.channels[-1]
-
     def linear_params(self, i: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Weight ``(c_out, c_in)`` and bias of layer ``i``; on the fast eval path with its
         BatchNorm folded in (:meth:`finish` then applies only the ReLU).
