@@ -63,19 +63,25 @@ def tiny_env():
     return make_synthetic_env(preset="tiny", seed=0, split="test", setting="kitti-1")
 
 
-@pytest.mark.parametrize("name", CHECKPOINTS)
+# P2B's are the ones the former batched forward failed here: they run by default, the rest as slow
+SLOW_UNLESS_P2B = [n if n.startswith("p2b") else pytest.param(n, marks=pytest.mark.slow)
+                   for n in CHECKPOINTS]
+
+
+@pytest.mark.parametrize("name", SLOW_UNLESS_P2B)
 def test_per_tracklet_results_do_not_depend_on_num_envs(name, tiny_env):
-    """A tracklet scores the same alone and batched with others (``--num-envs 1`` vs 3)."""
+    """A tracklet scores the same alone and batched with others (``--num-envs 1`` vs 3). With
+    the former batched eval forward (``batch_invariant = False``) both P2B checkpoints failed
+    this on this machine (e.g. p2b-kitti1-w's tracklet 0019/9: Success 41.7 alone, 46.4
+    batched)."""
     from training.evaluate import evaluate
 
     model = trackers.load(name)
-    lengths = np.asarray(tiny_env.tracklet_lengths)
-    subset = [int(i) for i in np.argsort(lengths, kind="stable")[:5]]  # the five shortest
 
     def per_tracklet(num_envs):
-        report = evaluate(model, tiny_env, seed=3, tracklets=subset, num_envs=num_envs)
+        report = evaluate(model, tiny_env, seed=3, num_envs=num_envs)
         return {r["tracklet"]: (r["success"], r["precision"]) for r in report["per_tracklet"]}
 
     alone = per_tracklet(1)
-    assert len(alone) == len(subset)
+    assert len(alone) == len(tiny_env.tracklet_lengths)
     assert per_tracklet(3) == alone
