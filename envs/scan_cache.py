@@ -11,7 +11,9 @@ canonical order (by global ``cell_m`` grid cell of the world x, y; ties in scan 
   that stays near the target;
 - the **cell index** of a frame: the whole scan sorted by cell, built lazily on the first crop
   that leaves the corridor (exploration: a random action puts the box anywhere), so such crops
-  cost about what a corridor crop costs instead of a whole-scan pass;
+  cost about what a corridor crop costs instead of a whole-scan pass; shared by the tracklets
+  of a scene (a :class:`GridStore` keyed by scene frame; by tracklet and frame under a scan
+  transform, which may differ per tracklet);
 - the **direct** crop of the whole scan (:func:`crop_canonical`): with the cache off
   (``corridor_m=None``, the no-cache baseline), or when a scan is too spread out for a grid of
   at most :data:`MAX_GRID_CELLS` cells.
@@ -46,6 +48,7 @@ __all__ = [
     "Corridor",
     "CropCache",
     "FrameIndex",
+    "GridStore",
     "ScanTransform",
     "TrackletScans",
     "crop_canonical",
@@ -210,17 +213,61 @@ class FrameIndex:
 
 
 def _sorted_index(
-    xyz: np.ndarray, key: np.ndarray, nx: int, ny: int, gt: np.ndarray, ix0: int, iy0: int
+    xyz: np.ndarray, key: np.ndarray, nx: int, ny: int, gt: np.ndarray | None, ix0: int, iy0: int
 ) -> FrameIndex:
-    """:class:`FrameIndex` of points ``xyz (M, 3)`` with grid-local cell keys ``x * ny + y``."""
+    """:class:`FrameIndex` of points ``xyz (M, 3)`` with grid-local cell keys ``x * ny + y``
+    (``target_points`` counted in ``gt`` when given, else 0)."""
     perm = np.argsort(key, kind="stable")  # stable: ties stay in scan order
     rows = np.ascontiguousarray(xyz[perm].T, dtype=np.float32)
     firsts = np.zeros(nx * ny + 1, np.int64)
     np.cumsum(np.bincount(key, minlength=nx * ny), out=firsts[1:])
     cells = np.arange(nx)[:, None] * ny + np.arange(ny + 1)
     starts = firsts[cells].astype(np.int32)
-    target = len(crop_box_frame(rows.T, gt)) if rows.shape[1] else 0
+    target = len(crop_box_frame(rows.T, gt)) if gt is not None and rows.shape[1] else 0
     return FrameIndex(rows, starts, target, ix0, iy0)
+
+
+def grid_index(xyz: np.ndarray, cell_m: float) -> FrameIndex | None:
+    """The whole-scan cell index of points ``xyz (N, 3)``: the grid spans their cells; ``None``
+    when that is more than :data:`MAX_GRID_CELLS` cells."""
+    if len(xyz) == 0:
+        return FrameIndex(np.zeros((3, 0), np.float32), np.zeros((1, 2), np.int32), 0)
+    ix, iy = _cells(xyz, cell_m)
+    ix0, iy0 = int(ix.min()), int(iy.min())
+    nx, ny = int(ix.max()) - ix0 + 1, int(iy.max()) - iy0 + 1
+    if nx * ny > MAX_GRID_CELLS:
+        return None
+    return _sorted_index(xyz, (ix - ix0) * ny + (iy - iy0), nx, ny, None, ix0, iy0)
+
+
+class GridStore:
+    """Whole-scan cell indices by key (scene and frame, or tracklet and frame), least recently
+    used first: their owner (:class:`CropCache`) evicts them within its budget."""
+
+    def __init__(self) -> None:
+        self._grids: OrderedDict[tuple, FrameIndex | None] = OrderedDict()
+        self.nbytes = 0
+
+    def __len__(self) -> int:
+        return len(self._grids)
+
+    def get(self, key: tuple, xyz: Callable[[], np.ndarray], cell_m: float) -> FrameIndex | None:
+        """The index of ``key``, built from the points ``xyz()`` on first use."""
+        if key in self._grids:
+            self._grids.move_to_end(key)
+            return self._grids[key]
+        idx = grid_index(xyz(), cell_m)
+        self._grids[key] = idx
+        self.nbytes += 0 if idx is None else idx.nbytes
+        return idx
+
+    def pop_oldest(self) -> None:
+        _, idx = self._grids.popitem(last=False)
+        self.nbytes -= 0 if idx is None else idx.nbytes
+
+    def clear(self) -> None:
+        self._grids.clear()
+        self.nbytes = 0
 
 
 class TrackletScans:
@@ -237,13 +284,14 @@ class TrackletScans:
         transform: ScanTransform | None,
         corridor: Corridor | None,
         cell_m: float,
+        grids: GridStore | None = None,
     ):
         self.tracklet = tracklet
         self.transform = transform
         self.corridor = corridor
         self.cell = float(cell_m)
         self.frames: dict[int, FrameIndex] = {}  # corridor indices
-        self.grids: dict[int, FrameIndex | None] = {}  # whole-scan indices (None: too spread)
+        self.grids = GridStore() if grids is None else grids  # whole-scan indices
         self.nbytes = 0 if corridor is None else corridor.nbytes
         self._full: OrderedDict[int, np.ndarray] = OrderedDict()  # last whole scans
         self._thresholds: dict[tuple, np.ndarray] = {}
@@ -291,25 +339,13 @@ class TrackletScans:
         return idx
 
     def grid(self, t: int) -> FrameIndex | None:
-        """The whole-scan cell index of frame ``t`` (built on first use); ``None`` when the
-        scan spans more than :data:`MAX_GRID_CELLS` cells."""
-        if t in self.grids:
-            return self.grids[t]
-        xyz = self.scan(t)[:, :3]
-        gt = np.asarray(self.tracklet.boxes[t], dtype=np.float64)
-        if len(xyz) == 0:
-            idx = FrameIndex(np.zeros((3, 0), np.float32), np.zeros((1, 2), np.int32), 0)
-        else:
-            ix, iy = _cells(xyz, self.cell)
-            ix0, iy0 = int(ix.min()), int(iy.min())
-            nx, ny = int(ix.max()) - ix0 + 1, int(iy.max()) - iy0 + 1
-            if nx * ny > MAX_GRID_CELLS:
-                idx = None
-            else:
-                idx = _sorted_index(xyz, (ix - ix0) * ny + (iy - iy0), nx, ny, gt, ix0, iy0)
-        self.grids[t] = idx
-        self.nbytes += 0 if idx is None else idx.nbytes
-        return idx
+        """The whole-scan cell index of frame ``t`` (built on first use, shared with the
+        scene's other tracklets when no scan transform is set); ``None`` when the scan spans
+        more than :data:`MAX_GRID_CELLS` cells."""
+        tr = self.tracklet
+        owner = tr.scene if self.transform is None else tr.tracklet_id
+        key = (owner, int(tr.frames[t]), self.cell)
+        return self.grids.get(key, lambda: self.scan(t)[:, :3], self.cell)
 
     def _build_corridor(self, t: int) -> FrameIndex:
         cor = self.corridor
@@ -394,9 +430,11 @@ class TrackletScans:
 
 
 class CropCache:
-    """The :class:`TrackletScans` of an env's tracklets, least recently used first evicted when
-    their bytes pass ``budget_mb`` (the current tracklet always stays). Holds no state an
-    observation depends on: dropping it (pickling, :meth:`clear`) only costs rebuilds."""
+    """The :class:`TrackletScans` of an env's tracklets and their shared :class:`GridStore`,
+    within ``budget_mb``: whole-scan indices are evicted first (least recently used, the last
+    two kept: a step crops two frames), then tracklets (least recently used; the current one
+    always stays). Holds no state an observation depends on: dropping it (pickling,
+    :meth:`clear`) only costs rebuilds."""
 
     def __init__(
         self,
@@ -410,6 +448,7 @@ class CropCache:
         self.budget_mb = float(budget_mb)
         self.transform = transform
         self._entries: OrderedDict[int, TrackletScans] = OrderedDict()
+        self.grids = GridStore()
         self.nbytes = 0
         self._evicted_stats = {"corridor": 0, "cell_index": 0, "full_scan": 0}
 
@@ -426,9 +465,9 @@ class CropCache:
     def clear(self, transform: ScanTransform | None = None) -> None:
         """Drop every index (and install ``transform`` for the scans read from now on)."""
         for entry in self._entries.values():
-            for key, n in entry.stats.items():
-                self._evicted_stats[key] += n
+            self._forget(entry)
         self._entries.clear()
+        self.grids.clear()
         self.nbytes = 0
         self.transform = transform
 
@@ -442,21 +481,51 @@ class CropCache:
         if self.corridor_m is not None:
             boxes = np.asarray(tracklet.boxes, dtype=np.float64)
             corridor = Corridor(boxes, boxes[0, 3:6], self.corridor_m, self.cell_m)
-        entry = TrackletScans(tracklet, self.transform, corridor, self.cell_m)
+        entry = TrackletScans(tracklet, self.transform, corridor, self.cell_m, self.grids)
         self._entries[index] = entry
         self.evict(keep=index)
         return entry
 
+    def crops(
+        self,
+        entry: TrackletScans,
+        index: int,
+        box: np.ndarray,
+        frames: Sequence[int],
+        enlargements: tuple[tuple[float, float], ...],
+    ) -> list[np.ndarray]:
+        """:meth:`TrackletScans.crops` of ``entry`` (tracklet ``index``) within the budget."""
+        before = entry.nbytes + self.grids.nbytes
+        crops = entry.crops(box, frames, enlargements)
+        if entry.nbytes + self.grids.nbytes != before:
+            self.evict(keep=index)
+        return crops
+
+    def target_points(self, entry: TrackletScans, index: int, t: int) -> int:
+        """:meth:`TrackletScans.target_points` of ``entry`` (tracklet ``index``) within the
+        budget."""
+        before = entry.nbytes
+        n = entry.target_points(t)
+        if entry.nbytes != before:
+            self.evict(keep=index)
+        return n
+
     def evict(self, keep: int) -> None:
-        """Drop least recently used entries (never ``keep``) until within the budget."""
+        """Drop whole-scan indices, then tracklets (never ``keep``), least recently used
+        first, until within the budget."""
         budget = self.budget_mb * 2**20
-        total = sum(e.nbytes for e in self._entries.values())
-        while total > budget and len(self._entries) > 1:
+        entries = sum(e.nbytes for e in self._entries.values())
+        while entries + self.grids.nbytes > budget and len(self.grids) > 2:
+            self.grids.pop_oldest()
+        while entries + self.grids.nbytes > budget and len(self._entries) > 1:
             idx, entry = next(iter(self._entries.items()))
             if idx == keep:
                 break
             self._entries.popitem(last=False)
-            for key, n in entry.stats.items():
-                self._evicted_stats[key] += n
-            total -= entry.nbytes
-        self.nbytes = total
+            self._forget(entry)
+            entries -= entry.nbytes
+        self.nbytes = entries + self.grids.nbytes
+
+    def _forget(self, entry: TrackletScans) -> None:
+        for key, n in entry.stats.items():
+            self._evicted_stats[key] += n

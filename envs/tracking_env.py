@@ -798,21 +798,11 @@ class TrackingEnv(gym.Env):
     def _crops(
         self, box: np.ndarray, frames: Sequence[int], enlargements: tuple[tuple[float, float], ...]
     ) -> list[np.ndarray]:
-        """:meth:`TrackletScans.crops` of the episode's tracklet within the cache's budget."""
-        entry = self._entry
-        before = entry.nbytes
-        crops = entry.crops(box, frames, enlargements)
-        if entry.nbytes != before:
-            self._crop_cache.evict(keep=self._index)
-        return crops
+        """:meth:`envs.scan_cache.TrackletScans.crops` of the episode's tracklet."""
+        return self._crop_cache.crops(self._entry, self._index, box, frames, enlargements)
 
     def _target_points(self, t: int) -> int:
-        entry = self._entry
-        before = entry.nbytes
-        n = entry.target_points(t)
-        if entry.nbytes != before:
-            self._crop_cache.evict(keep=self._index)
-        return n
+        return self._crop_cache.target_points(self._entry, self._index, t)
 
     def _add_weather(self, info: dict[str, Any]) -> None:
         weather = getattr(self.scan_transform, "info", None)

@@ -54,7 +54,7 @@ def test_cell_index_crops_equal_direct_crops_anywhere(toy, cell_m):
             plain = crop_box_frame(tr.points(f), box, scale, off)
             assert sorted(map(tuple, plain)) == sorted(map(tuple, crop))
     assert scans.stats["cell_index"] > 50 and scans.stats["full_scan"] == 0
-    assert set(scans.grids) <= set(range(len(tr)))
+    assert len(scans.grids) == len(tr)  # one whole-scan index per frame
 
 
 def test_mixed_requests_share_one_gather(toy):
@@ -78,7 +78,7 @@ def test_spread_scans_and_empty_scans_fall_back(toy, monkeypatch):
     box[:2] += 20.0
     (crop,) = scans.crops(box, (1,), ENLARGEMENTS[1:])
     np.testing.assert_array_equal(crop, crop_canonical(tr.points(1), box, *ENLARGEMENTS[1]))
-    assert scans.stats["full_scan"] == 1 and scans.grids[1] is None
+    assert scans.stats["full_scan"] == 1 and scans.grid(1) is None
     empty = scans_of(tr, transform=lambda pts, tid, frame: pts[:0])
     got = empty.crops(box, (1, 2), ENLARGEMENTS)
     assert [c.shape for c in got] == [(0, 3), (0, 3)]
@@ -87,13 +87,24 @@ def test_spread_scans_and_empty_scans_fall_back(toy, monkeypatch):
 def test_crop_cache_budget_keeps_the_current_tracklet(toy):
     cache = CropCache(2.0, 1.0, 0.0, None)  # no budget: only the current entry stays
     first = cache.entry(0, toy.tracklets[0])
-    first.crops(toy.tracklets[0].boxes[1], (1,), ENLARGEMENTS[1:])
-    cache.evict(keep=0)
+    cache.crops(first, 0, toy.tracklets[0].boxes[1], (1,), ENLARGEMENTS[1:])
     assert cache.nbytes == first.nbytes > 0
-    cache.entry(1, toy.tracklets[1]).crops(toy.tracklets[1].boxes[1], (1,), ENLARGEMENTS[1:])
-    cache.evict(keep=1)
+    second = cache.entry(1, toy.tracklets[1])
+    cache.crops(second, 1, toy.tracklets[1].boxes[1], (1,), ENLARGEMENTS[1:])
     assert list(cache._entries) == [1]
     assert cache.stats["corridor"] == 2  # evicted entries' counts are kept
+    # whole-scan indices: shared by the scene's tracklets, evicted first, the last two kept
+    far = toy.tracklets[1].boxes[1].copy()
+    far[:2] += 30.0
+    for t in range(1, 5):
+        cache.crops(second, 1, far, (t,), ENLARGEMENTS[1:])
+    assert len(cache.grids) == 2 and list(cache._entries) == [1]
+    third = cache.entry(2, toy.tracklets[2])  # same scene: frame 4 of the scene is shared
+    frame = int(toy.tracklets[1].frames[4])
+    t3 = int(np.flatnonzero(toy.tracklets[2].frames == frame)[0])
+    n = len(cache.grids)
+    cache.crops(third, 2, far, (t3,), ENLARGEMENTS[1:])
+    assert third.stats["cell_index"] == 1 and len(cache.grids) == n
 
 
 def test_uniform_random_actions_observe_exactly_the_uncached_env(toy):
