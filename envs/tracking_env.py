@@ -27,11 +27,18 @@ from envs.data.toy import ToyDataset, make_toy_dataset
 from envs.data.tracklet import Tracklet
 from envs.geometry import apply_offset_pair, iou_pair, offset_between_pair
 from envs.observation import (
+    MASK_GT,
+    MASK_PREDICTED,
+    PREVIOUS_SEARCH_CHANNELS,
+    PREVIOUS_TIME,
     SEARCH_OFFSET_M,
     SEARCH_SCALE,
     SEARCH_SIZE,
     TEMPLATE_SCALE,
     TEMPLATE_SIZE,
+    crop_extents,
+    extent_threshold,
+    in_extent,
     resample_into,
 )
 from envs.rewards import (
@@ -47,6 +54,8 @@ from envs.scan_cache import CropCache, ScanTransform, TrackletScans, crop_canoni
 
 __all__ = [
     "DEFAULT_MAX_ACTION",
+    "OBSERVATION_KEYS",
+    "OPTIONAL_OBSERVATION_KEYS",
     "REFERENCE_MODES",
     "RESET_OPTIONS",
     "REWARDS",
@@ -69,6 +78,10 @@ REWARDS = available_rewards()
 SAMPLING_MODES = ("sequential", "random")
 RESET_OPTIONS = ("tracklet", "category", "start_frame", "max_steps", "episode_seed")
 DEFAULT_MAX_ACTION = (5.0, 5.0, 3.0, math.pi)
+OBSERVATION_KEYS = ("template", "search", "size", "motion")
+"""The default observation (always present)."""
+OPTIONAL_OBSERVATION_KEYS = ("previous_search",)
+"""Opt-in observation keys (``observation_keys=``)."""
 
 POINT_BOUND_M = 100.0
 """Bound of the point observation spaces (metres, box frame); crops never reach it for boxes
@@ -113,6 +126,18 @@ class TrackingEnv(gym.Env):
     - ``motion (4,)``: the last predicted motion ``(dx, dy, dz, dyaw)``: the offset from the
       prediction two frames back to the last one, in the former's frame (zeros at the first
       step), so motion-aware trackers stay stateless.
+
+    Opt-in (``observation_keys=(*OBSERVATION_KEYS, "previous_search")``), the input of
+    motion-centric trackers (M2-Track, Zheng et al., CVPR 2022):
+
+    - ``previous_search (1024, 5)``: the previous frame's points cropped and transformed like the
+      search region (around the same reference box, same enlargement, same frame), resampled
+      likewise, with columns ``x, y, z, time, mask`` (``envs.observation.PREVIOUS_SEARCH_
+      CHANNELS``): ``time`` is ``PREVIOUS_TIME`` (0; M2-Track gives the current frame's points
+      ``CURRENT_TIME`` = 0.1), ``mask`` says whether the point lies in the reference box scaled
+      1.25: 1 / 0 when that box is the previous frame's ground truth (the given box at the first
+      step, or ``reference="previous_gt"``), else M2-Track's softened 0.8 / 0.2; zeros when the
+      crop is empty (``info["empty_previous_search"]``).
 
     Template modes (``template_mode``): ``"first_and_previous"`` (default; 256 points from the
     first frame cropped with the given box scaled 1.25 plus 256 from the previous frame cropped
@@ -227,6 +252,7 @@ class TrackingEnv(gym.Env):
         episode_seed: int | None = None,
         start_frame: int | str = 0,
         max_steps: int | None = None,
+        observation_keys: Sequence[str] = OBSERVATION_KEYS,
     ) -> None:
         _check_choice("sampling", sampling, SAMPLING_MODES)
         _check_choice("template_mode", template_mode, TEMPLATE_MODES)
@@ -250,6 +276,8 @@ class TrackingEnv(gym.Env):
         self.reward_kwargs = dict(reward_kwargs or {})
         self._default_start = _check_start_frame(start_frame, "start_frame")
         self._default_max_steps = _check_max_steps(max_steps, "max_steps")
+        self.observation_keys = _check_observation_keys(observation_keys)
+        self._previous_search = "previous_search" in self.observation_keys
 
         if isinstance(categories, str):
             categories = (categories,)
@@ -315,6 +343,14 @@ class TrackingEnv(gym.Env):
                 "motion": spaces.Box(-motion_hi, motion_hi, (4,), np.float32),
             }
         )
+        if self._previous_search:
+            n = len(PREVIOUS_SEARCH_CHANNELS)
+            hi = np.array([POINT_BOUND_M] * 3 + [1.0, 1.0], np.float32)
+            lo = np.array([-POINT_BOUND_M] * 3 + [0.0, 0.0], np.float32)
+            self.observation_space["previous_search"] = spaces.Box(
+                np.tile(lo, (SEARCH_SIZE, 1)), np.tile(hi, (SEARCH_SIZE, 1)), (SEARCH_SIZE, n),
+                np.float32,
+            )
         self._motion_hi = motion_hi.astype(np.float64).tolist()
         self._max_action_list = a_max.tolist()
         self._crop_cache = self._new_crop_cache()
@@ -446,8 +482,7 @@ class TrackingEnv(gym.Env):
             "observed": self._observed,
             "init_box": tr.boxes[self._start_frame].astype(np.float64, copy=True),
             "start_frame": self._start_frame,
-            "empty_template": empty[0],
-            "empty_search": empty[1],
+            **empty,
         }
         self._add_weather(info)
         return obs, info
@@ -489,7 +524,7 @@ class TrackingEnv(gym.Env):
         else:
             self._t = t + 1
             obs, empty = self._observation()
-        info["empty_template"], info["empty_search"] = empty
+        info.update(empty)
         self._add_weather(info)
         self._done = "terminated" if terminated else "truncated" if truncated else ""
         reward = self._reward(pred, gt, prev_pred, t - self._start_frame - 1, info)
@@ -610,7 +645,7 @@ class TrackingEnv(gym.Env):
         self._prev_crop = None
         self._all_crops: list[np.ndarray] = []
         self._last_obs = None
-        self._last_empty = (False, False)
+        self._last_empty: dict[str, bool] = {}
         self._search_crop = np.zeros((0, 3), np.float32)
         self._render_state = None
 
@@ -732,31 +767,38 @@ class TrackingEnv(gym.Env):
             return np.asarray(self._tracklet.boxes[t - 1], dtype=np.float64)
         return np.asarray(self._tracklet.boxes[t], dtype=np.float64)
 
-    def _observation(self) -> tuple[dict[str, np.ndarray], tuple[bool, bool]]:
-        """The observation for frame ``self._t`` (uses the predictions up to ``t - 1``) and
-        whether its template and search sets are empty: every crop and the resampling."""
+    def _observation(self) -> tuple[dict[str, np.ndarray], dict[str, bool]]:
+        """The observation for frame ``self._t`` (uses the predictions up to ``t - 1``) and its
+        ``empty_*`` flags: every crop and the resampling."""
         t, mode, start = self._t, self.template_mode, self._start_frame
         entry = self._entry
         first = entry.template_crops.get(start)
         if first is None:  # the given box's crop: the same in every episode from this frame
             (first,) = self._crops(self._preds[0], (start,), (TEMPLATE_ENLARGEMENT,))
             entry.template_crops[start] = first
-        ref = self._reference_box(t)
         if t == start + 1:
             self._first_crop, self._prev_crop, self._all_crops = first, first, [first]
-        if t >= start + 2 and mode != "first":  # previous frame's crop around its prediction
-            if self.reference == "prediction":  # one box for both crops: one pass
-                self._prev_crop, search_pts = self._crops(
-                    ref, (t - 1, t), (TEMPLATE_ENLARGEMENT, SEARCH_ENLARGEMENT)
-                )
+        ref = self._reference_box(t)
+        # the crops around the reference box, taken in one pass: the search region, the opt-in
+        # previous search region, and the previous template when its box is the reference
+        frames, enlargements = [t], [SEARCH_ENLARGEMENT]
+        if self._previous_search:
+            frames.append(t - 1)
+            enlargements.append(SEARCH_ENLARGEMENT)
+        new_prev = t >= start + 2 and mode != "first"  # the previous frame's template crop
+        if new_prev and self.reference == "prediction":
+            frames.append(t - 1)
+            enlargements.append(TEMPLATE_ENLARGEMENT)
+        crops = self._crops(ref, tuple(frames), tuple(enlargements))
+        search_pts = crops[0]
+        if new_prev:
+            if self.reference == "prediction":
+                self._prev_crop = crops[-1]
             else:
                 prev_box = self._preds[t - 1 - start]
                 (self._prev_crop,) = self._crops(prev_box, (t - 1,), (TEMPLATE_ENLARGEMENT,))
-                (search_pts,) = self._crops(ref, (t,), (SEARCH_ENLARGEMENT,))
             if mode == "all":
                 self._all_crops.append(self._prev_crop)
-        else:
-            (search_pts,) = self._crops(ref, (t,), (SEARCH_ENLARGEMENT,))
         template = np.empty((TEMPLATE_SIZE, 3), np.float32)
         search = np.empty((SEARCH_SIZE, 3), np.float32)
         half = TEMPLATE_SIZE // 2
@@ -767,9 +809,17 @@ class TrackingEnv(gym.Env):
         elif mode == "previous":
             sets, outs = [self._prev_crop], [template]
         else:
-            crops = self._all_crops
-            sets, outs = [np.concatenate(crops) if len(crops) > 1 else crops[0]], [template]
-        *counts, n_search = resample_into([*sets, search_pts], [*outs, search], self._resample_rng)
+            merged = self._all_crops
+            sets, outs = [np.concatenate(merged) if len(merged) > 1 else merged[0]], [template]
+        sets.append(search_pts)
+        outs.append(search)
+        if self._previous_search:  # last: the default sets' draws stay those of the default
+            previous = np.empty((SEARCH_SIZE, 3), np.float32)
+            sets.append(crops[1])
+            outs.append(previous)
+        counts = resample_into(sets, outs, self._resample_rng)
+        n_search = counts[-2] if self._previous_search else counts[-1]
+        n_template = sum(counts[: len(sets) - 1 - self._previous_search])
         self._ref = ref
         self._search_crop = search_pts
         obs = {
@@ -778,13 +828,34 @@ class TrackingEnv(gym.Env):
             "size": self._size_obs.copy(),
             "motion": self._motion,  # a new array every step: handed over as it is
         }
-        empty = (sum(counts) == 0, n_search == 0)
+        empty = {"empty_template": n_template == 0, "empty_search": n_search == 0}
+        if self._previous_search:
+            obs["previous_search"] = self._with_channels(previous, ref, counts[-1], t)
+            empty["empty_previous_search"] = counts[-1] == 0
         if t == self._last_frame:
             # the next step terminates and repeats this observation: keep a copy the caller
             # cannot modify (earlier observations are handed over without one)
             self._last_obs = {k: v.copy() for k, v in obs.items()}
             self._last_empty = empty
         return obs, empty
+
+    def _with_channels(self, xyz: np.ndarray, ref: np.ndarray, count: int, t: int) -> np.ndarray:
+        """``previous_search`` ``(SEARCH_SIZE, 5)`` float32 from its resampled points ``xyz``
+        (reference box frame): the time and previous-box mask columns."""
+        out = np.zeros((len(xyz), len(PREVIOUS_SEARCH_CHANNELS)), np.float32)
+        if count == 0:
+            return out
+        out[:, :3] = xyz
+        out[:, 3] = PREVIOUS_TIME
+        # the reference box is the previous frame's ground truth: the given box at the first
+        # step, or previous_gt; otherwise it is a prediction (or frame t's box) and uncertain
+        certain = self.reference == "previous_gt" or (
+            self.reference == "prediction" and t == self._start_frame + 1
+        )
+        outside, inside = MASK_GT if certain else MASK_PREDICTED
+        threshold = extent_threshold(crop_extents(ref, [TEMPLATE_ENLARGEMENT]), np.float32)
+        out[:, 4] = np.where(in_extent(xyz.T, threshold), inside, outside)
+        return out
 
     # ------------------------------------------------------------------ crop cache
 
@@ -855,6 +926,20 @@ def _check_start_frame(value: Any, name: str) -> int | str:
     if not _is_int(value) or value < 0:
         raise ValueError(f"{name} must be a frame index >= 0 or 'random'; got {value!r}")
     return int(value)
+
+
+def _check_observation_keys(keys: Sequence[str]) -> tuple[str, ...]:
+    keys = (keys,) if isinstance(keys, str) else tuple(keys)
+    valid = OBSERVATION_KEYS + OPTIONAL_OBSERVATION_KEYS
+    bad = [k for k in keys if k not in valid]
+    missing = [k for k in OBSERVATION_KEYS if k not in keys]
+    if bad or missing or len(set(keys)) != len(keys):
+        raise ValueError(
+            f"observation_keys={list(keys)}: must hold {list(OBSERVATION_KEYS)} (the default "
+            f"contract) plus any of {list(OPTIONAL_OBSERVATION_KEYS)}, each once"
+            + (f"; unknown: {bad}" if bad else "")
+        )
+    return keys
 
 
 def _check_max_steps(value: Any, name: str) -> int | None:
