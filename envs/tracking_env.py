@@ -921,7 +921,7 @@ def _check_seed(seed: Any, name: str) -> int | None:
 
 
 def _check_start_frame(value: Any, name: str) -> int | str:
-    if value == "random" and isinstance(value, str):
+    if isinstance(value, str) and value == "random":
         return value
     if not _is_int(value) or value < 0:
         raise ValueError(f"{name} must be a frame index >= 0 or 'random'; got {value!r}")
