@@ -56,7 +56,7 @@ def test_resume_refuses_other_tracker_or_config(tmp_path):
         _run(tmp_path / "r", epochs=2, resume=True, tracker="bat")
     with pytest.raises(TrainingError, match="lr"):
         _run(tmp_path / "r", epochs=2, resume=True, lr=5e-3)
-    with pytest.raises(TrainingError, match="already exists"):
+    with pytest.raises(TrainingError, match="already holds a run"):
         _run(tmp_path / "r", epochs=2)
 
 
@@ -242,7 +242,7 @@ def test_weight_ema_matches_a_hand_computation():
 
 
 def test_ema_run_validates_and_exports_the_average_and_resumes_exactly(tmp_path):
-    from training.pretrain import load_weights
+    from training.checkpoint import load_weights
 
     seen = []
 

@@ -139,7 +139,7 @@ def test_load_candidate_reads_training_checkpoints_and_names_bad_files(tmp_path)
 
     import trackers
     from training.config import tracker_config
-    from training.pretrain import CHECKPOINT_FORMAT
+    from training.checkpoint import CHECKPOINT_FORMAT
     from training.selection import load_candidate
 
     model = trackers.make("p2b", **tracker_config("p2b", "slim"))

@@ -91,7 +91,7 @@ def export(run_dir, path: str) -> None:
     from pathlib import Path
 
     import trackers
-    from training.pretrain import tracker_from_checkpoint
+    from training.checkpoint import tracker_from_checkpoint
 
     run_dir = Path(run_dir)
     src = run_dir / "best.pt" if (run_dir / "best.pt").exists() else run_dir / "last.pt"
