@@ -114,9 +114,10 @@ def test_bad_configs_fail_naming_keys(tmp_path):
 def test_train_command_rejects_bad_flags_before_training(tmp_path, capsys):
     from training.cli import main
 
-    with pytest.raises(SystemExit) as err:
-        main(["train", "--tracker", "p2b", "--out", str(tmp_path / "x"), "--set", "nope=1"])
-    assert "nope" in str(err.value)
+    assert main(["train", "--tracker", "p2b", "--out", str(tmp_path / "x"),
+                 "--set", "nope=1"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("pointtrack train: ") and "nope" in err and err.count("\n") == 1
     assert not (tmp_path / "x").exists()
 
 
