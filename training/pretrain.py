@@ -531,6 +531,8 @@ class Trainer:
                       + (f" ({dropped} log records of the interrupted attempt dropped)"
                          if dropped else ""))
         elif resume and self.main:
+            # the log of an attempt killed before its first checkpoint: it starts again
+            (self.out / "log.jsonl").unlink(missing_ok=True)
             print(f"no checkpoint in {self.out} yet; starting its run from the beginning")
         if self.main:
             self.out.mkdir(parents=True, exist_ok=True)

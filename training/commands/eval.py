@@ -52,7 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     """The dataset / env flags shared by `eval` and `demo`."""
-    parser.add_argument("--dataset", choices=("synthetic", "kitti"), default="synthetic")
+    parser.add_argument("--dataset", choices=("synthetic", "kitti"), default="synthetic",
+                        help="a synthetic world (generated once into the cache) or a KITTI root")
     parser.add_argument(
         "--root",
         default=None,
