@@ -84,6 +84,16 @@ def test_row2_split_missing_a_scene_is_an_error_unless_allowed(tiny, tmp_path, c
     (root / "manifest.json").unlink()
     with pytest.raises(FileNotFoundError, match="0019, 0020"):
         KittiTracking(root, "test")
+    # a root written with a subset on purpose declares it
+    from envs.data.kitti import declare_scenes
+
+    declare_scenes(root, ["0000"])
+    declare_scenes(root, ["0017"])
+    assert KittiTracking(root, "test").tracklets == []
+    assert KittiTracking(root, "all").scenes == ["0000", "0017"]
+    (root / "label_02" / "0017.txt").unlink()
+    with pytest.raises(FileNotFoundError, match="0017"):
+        KittiTracking(root, "val")
 
 
 @pytest.mark.parametrize("count", ["0", "-1"])
@@ -370,6 +380,7 @@ def test_sigkill_in_the_cache_is_cleaned_on_next_use(tmp_path):
 
 TRAIN_SCRIPT = """
 import sys
+sys.modules["torch.utils.tensorboard"] = None  # optional logging: skip its slow import here
 from test_pretrain_support import TinyTracker, small_dataset, tiny_config
 from training.pretrain import train
 print("ready", flush=True)

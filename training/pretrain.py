@@ -15,12 +15,14 @@ SAM (-S).
   :func:`load_weights` (so ``--export``) then use the averaged weights.
 * Checkpoints (``last.pt`` after every epoch, ``best.pt`` at the best val Success) hold the
   weights, their average (when on), optimizer, scheduler, decorrelation memory, RNG states
-  (torch, numpy, python), epoch, step and config; they are written atomically (temporary
-  file + ``os.replace``) and read with ``torch.load(weights_only=True)``. ``resume=True``
-  continues from ``last.pt``; every random draw depends only on ``(seed, epoch, sample index)``
-  and the torch generators (the global one and a tracker's own ``model.generator`` for point
-  sampling) are reseeded at every epoch, so a resumed run ends with exactly the weights of an
-  uninterrupted one (CPU). A checkpoint of another tracker or config is refused, naming the
+  (torch, numpy, python), epoch, step and config; :mod:`training.checkpoint` writes them
+  atomically and reads them without running code. :func:`check_run_dir` decides, before any
+  data is built, whether a run starts or resumes (a fresh run refuses a directory holding a run;
+  ``resume=True`` refuses one holding nothing). ``resume=True`` continues from ``last.pt`` and
+  cuts ``log.jsonl`` back to its step; every random draw depends only on ``(seed, epoch, sample
+  index)`` and the torch generators (the global one and a tracker's own ``model.generator`` for
+  point sampling) are reseeded at every epoch, so a resumed run ends with exactly the weights of
+  an uninterrupted one (CPU). A checkpoint of another tracker or config is refused, naming the
   differing keys.
 * A non-finite loss stops the run with :class:`TrainingError` naming the step and the samples;
   the last good checkpoint is left as it was.

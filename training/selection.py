@@ -196,6 +196,11 @@ def score_candidates(
     loaded = {c: load_candidate(c) for c in candidates}
     digests = {c: _candidate_digest(c) for c in candidates}
     cache = Path(cache_dir) if cache_dir is not None else None
+    if cache is not None:  # temporaries of a killed selection (reports are renamed into place)
+        from training.checkpoint import remove_stale_temps
+
+        for part in config.parts:
+            remove_stale_temps(cache / f"w{part.world_seed}-{part.split}")
     per_part: dict[str, dict[str, dict[str, float]]] = {c: {} for c in candidates}
     for part in config.parts:
         env = None

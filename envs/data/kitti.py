@@ -44,6 +44,7 @@ __all__ = [
     "NonFinitePointsWarning",
     "SceneScans",
     "camera_to_lidar_boxes",
+    "declare_scenes",
     "expected_scenes",
     "label_path",
     "lidar_to_camera_boxes",
@@ -603,16 +604,18 @@ class MissingSceneWarning(RuntimeWarning):
 
 
 def expected_scenes(root: str | Path, split: str) -> list[str] | None:
-    """Scene names (``"0019"``) that ``split`` needs under ``root``: the scenes a synthetic
-    world's ``manifest.json`` lists (it may hold a subset of the KITTI scenes) within the split,
-    else the split's KITTI scene numbers; ``None`` (no expectation) for ``"all"`` without a
+    """Scene names (``"0019"``) that ``split`` needs under ``root``: the scenes the root's
+    ``manifest.json`` lists within the split (a synthetic world's ``scene_stats``, or the
+    ``scenes`` of :func:`declare_scenes`: such roots may hold a subset of the KITTI scenes), else
+    the split's KITTI scene numbers; ``None`` (no expectation) for ``"all"`` without a
     manifest."""
     import json
 
     scene_range = _check_split(split)
     try:
         manifest = json.loads((Path(root) / "manifest.json").read_text())
-        listed = sorted(str(k) for k in manifest["scene_stats"])
+        held = manifest["scene_stats"] if "scene_stats" in manifest else manifest["scenes"]
+        listed = sorted(str(k) for k in held)
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         listed = None
     if listed is not None:
@@ -620,6 +623,27 @@ def expected_scenes(root: str | Path, split: str) -> list[str] | None:
     if scene_range is None:
         return None
     return [f"{i:04d}" for i in scene_range]
+
+
+def declare_scenes(root: str | Path, scenes: Iterable[str]) -> None:
+    """Record in ``root/manifest.json`` that the KITTI-layout root holds ``scenes`` (names such
+    as ``"0019"``; merged with any already declared), so that a split needs only those of its
+    scenes (:func:`expected_scenes`). For roots written on purpose with a subset of the scenes
+    (a toy dataset, a replay of a few scenes)."""
+    import json
+
+    path = Path(root) / "manifest.json"
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError):
+        manifest = {}
+    if "scene_stats" in manifest:
+        raise ValueError(f"{path} is a synthetic world's manifest; its scenes are fixed")
+    manifest["scenes"] = sorted(set(manifest.get("scenes", [])) | {str(s) for s in scenes})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    tmp.replace(path)
 
 
 def _check_split(split: str) -> range | None:

@@ -7,6 +7,12 @@ ever taken as complete when its manifest matches: generation writes into a tempo
 directory and renames it into place at the end (atomic on one file system), so a killed run
 never leaves a half-written world under the final name, and two processes generating the same
 world end with one complete copy (the second rename fails and that process uses the first copy).
+
+Integrity. The manifest records every file's size and SHA-256. :func:`ensure_world` checks the
+sizes (a ``stat`` per file) on every use and regenerates a world that fails; the digests are
+checked by :func:`verify_world` (``pointtrack generate --verify DIR``). Temp directories of
+killed runs are told from live ones by a ``flock`` their writer holds, and are removed on the
+next use of the cache (:func:`clean_stale_temps`).
 """
 
 from __future__ import annotations
@@ -536,7 +542,7 @@ def generate_world(
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise OSError(f"cannot create {out.parent} for the world: {exc.strerror or exc}") from None
-    clean_stale_temps(out.parent)
+    clean_stale_temps(out.parent, out.name)  # only this world's: the folder may be anyone's
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     lock = _hold_lock(tmp)  # before the directory exists: a cleaner never sees it unlocked
     try:
@@ -603,16 +609,17 @@ def _owner_alive(tmp: Path) -> bool:
     return False
 
 
-def clean_stale_temps(directory: str | Path) -> list[Path]:
+def clean_stale_temps(directory: str | Path, name: str = "*") -> list[Path]:
     """Remove what killed runs left in ``directory`` (``SIGKILL`` skips every cleanup): temp
     directories ``.NAME.tmp-*`` whose writer is gone (:func:`_owner_alive`), their lock files,
-    and half-deleted ``.NAME.trash-*`` trees. Cheap (one ``glob``); run on every use of the
-    cache. Returns the removed paths."""
+    and half-deleted ``.NAME.trash-*`` trees, of the world ``name`` (default: every world: the
+    cache's own directory). Cheap (one ``glob``); run on every use of the cache. Returns the
+    removed paths."""
     directory = Path(directory)
     removed: list[Path] = []
     if not directory.is_dir():
         return removed
-    for path in directory.glob(".*.tmp-*"):
+    for path in directory.glob(f".{name}.tmp-*"):
         if path.name.endswith(".lock"):
             if not path.with_name(path.name.removesuffix(".lock")).exists():
                 tmp = path.with_name(path.name.removesuffix(".lock"))
@@ -620,11 +627,15 @@ def clean_stale_temps(directory: str | Path) -> list[Path]:
                     path.unlink(missing_ok=True)
                     removed.append(path)
             continue
-        if path.is_dir() and not _owner_alive(path):
+        if _owner_alive(path):
+            continue
+        if path.is_dir():
             _remove_tree(path)
             _lock_path(path).unlink(missing_ok=True)
-            removed.append(path)
-    for path in directory.glob(".*.trash-*"):
+        else:  # a write probe of a killed process
+            path.unlink(missing_ok=True)
+        removed.append(path)
+    for path in directory.glob(f".{name}.trash-*"):
         shutil.rmtree(path, ignore_errors=True)
         removed.append(path)
     return removed

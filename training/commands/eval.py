@@ -193,6 +193,9 @@ def check_out(args: argparse.Namespace) -> None:
         except OSError as exc:
             raise SystemExit(f"pointtrack eval: cannot write to --out {out}: "
                              f"{exc.strerror or exc}") from None
+        from training.checkpoint import remove_stale_temps
+
+        remove_stale_temps(out)  # a killed evaluation's half-written report
 
 
 def load_trackers(args: argparse.Namespace) -> dict[str, Any]:
