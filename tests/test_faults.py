@@ -272,6 +272,8 @@ def test_row18_missing_root_unwritable_out_and_cache_no_cuda(tmp_path, capsys, m
     blocker.write_text("")
     assert main(["eval", "--preset", "tiny", "--out", str(blocker / "sub")]) == 2
     _one_line_error(capsys, "eval", "cannot write to --out")
+    assert main(["train", "--out", str(blocker / "sub"), "--no-progress"]) == 2
+    _one_line_error(capsys, "train", "cannot write to the run directory")
     monkeypatch.setenv("POINTTRACK_CACHE", str(blocker))
     assert main(["eval", "--preset", "tiny", "--seed", "7"]) == 2
     _one_line_error(capsys, "eval", "POINTTRACK_CACHE")

@@ -58,7 +58,8 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         "--root",
         default=None,
         metavar="DIR",
-        help="KITTI tracking root (label_02/, calib/, velodyne/); --dataset kitti",
+        help="a KITTI tracking root or a generated world (label_02/, calib/, velodyne/); "
+        "needed with --dataset kitti",
     )
     parser.add_argument("--preset", default="small", help="synthetic preset (tiny, small, default)")
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
