@@ -140,8 +140,8 @@ def test_load_candidate_reads_training_checkpoints_and_names_bad_files(tmp_path)
     import torch
 
     import trackers
-    from training.config import tracker_config
     from training.checkpoint import CHECKPOINT_FORMAT
+    from training.config import tracker_config
     from training.selection import load_candidate
 
     model = trackers.make("p2b", **tracker_config("p2b", "slim"))

@@ -12,7 +12,7 @@ SAM (-S).
   ones are never looked at before test). The checkpoint with the best val Success is kept.
 * ``ema_decay > 0`` keeps an exponential moving average of the weights
   (:class:`training.averaging.WeightEMA`); validation, ``best.pt``'s selection and
-  :func:`load_weights` (so ``--export``) then use the averaged weights.
+  :func:`training.checkpoint.load_weights` (so ``--export``) then use the averaged weights.
 * Checkpoints (``last.pt`` after every epoch, ``best.pt`` at the best val Success) hold the
   weights, their average (when on), optimizer, scheduler, decorrelation memory, RNG states
   (torch, numpy, python), epoch, step and config; :mod:`training.checkpoint` writes them
@@ -57,6 +57,7 @@ from training.checkpoint import (
     atomic_save,
     check_resumable,
     config_differences,
+    load_weights,
     read_checkpoint,
     remove_stale_temps,
     restore_rng_state,
@@ -74,6 +75,7 @@ __all__ = [
     "Trainer",
     "TrainingError",
     "check_run_dir",
+    "load_weights",  # re-exported from training.checkpoint, with tracker_from_checkpoint
     "tracker_from_checkpoint",
     "train",
 ]
