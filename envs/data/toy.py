@@ -80,6 +80,7 @@ class ToyDataset:
         from envs.data.kitti import (
             Calibration,
             LabelRow,
+            declare_scenes,
             lidar_to_camera_boxes,
             write_calibration,
             write_labels,
@@ -103,6 +104,7 @@ class ToyDataset:
         loader = self.tracklets[0].scans
         for f in range(max(frames) + 1):
             write_scan(root / "velodyne" / scene / f"{f:06d}.bin", loader(f))
+        declare_scenes(root, [scene])  # a one-scene root: its split needs only this scene
         return str(root)
 
 
