@@ -3,12 +3,18 @@ the nuScenes v1.0 layout (real nuScenes, or the synthetic world written in that 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
 from envs.tracking_env import TrackingEnv
 
-__all__ = ["make_nuscenes_env"]
+__all__ = ["NUSCENES_MAX_ACTION", "make_nuscenes_env"]
+
+# Key frames are 0.5 s apart (2 Hz), five times the KITTI frame interval, so the largest offset
+# one step may apply is five times the KITTI default in the ground plane (the same 50 m/s bound
+# on relative speed); a static object passed by an ego at 50 km/h already moves 7 m per step.
+NUSCENES_MAX_ACTION = (25.0, 25.0, 3.0, math.pi)
 
 
 def make_nuscenes_env(
@@ -34,7 +40,8 @@ def make_nuscenes_env(
         split: an official split; ``"val"`` (default) is the SOT test split.
         setting, categories: as for :class:`TrackingEnv` (``nuscenes-1``, ``nuscenes-2``...).
         preset, sensor, seed, cache_dir: the synthetic world, when ``root`` is ``None``.
-        env_kwargs: any other :class:`TrackingEnv` keyword.
+        env_kwargs: any other :class:`TrackingEnv` keyword; ``max_action`` defaults to
+            :data:`NUSCENES_MAX_ACTION`.
     """
     from envs.data import get_setting
     from envs.data.nuscenes import NuScenesTracking
@@ -56,4 +63,5 @@ def make_nuscenes_env(
     if load is None and setting is not None:
         load = get_setting(setting).categories
     dataset = NuScenesTracking(root, version, split, load)
+    env_kwargs.setdefault("max_action", NUSCENES_MAX_ACTION)
     return TrackingEnv(dataset, setting=setting, categories=categories, split=split, **env_kwargs)
