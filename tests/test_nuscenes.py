@@ -14,7 +14,7 @@ import pytest
 
 from envs.data import NuScenesTracking, get_setting
 from envs.data.kitti import NonFinitePointsWarning
-from envs.data.nuscenes import CATEGORY_MAP, TRAINING_SPLITS, split_scenes
+from envs.data.nuscenes import CATEGORY_MAP, SOT_SPLITS, split_scenes
 
 VERSION = "v1.0-test-tables"
 
@@ -270,7 +270,9 @@ def test_official_split_lists():
     assert test[0] == "scene-0077" and "scene-0001" in train
     assert set(split_scenes("mini_val")) <= set(val)
     assert split_scenes("all") is None
-    assert set(TRAINING_SPLITS.values()) <= {"train_detect", "train_track"}
+    assert SOT_SPLITS == {
+        "train": "train_track", "val": "train_detect", "test": "val", "all": "all"
+    }
 
 
 def test_category_map_targets_are_setting_names():
@@ -340,8 +342,8 @@ def test_synthetic_world_tables_and_splits(world):
     stamps = [s["timestamp"] for s in tables["sample"]]
     assert np.diff(stamps[:5]).tolist() == [500_000] * 4  # 2 Hz key frames
     assert {s["name"] for s in tables["scene"]} == {"scene-0004", "scene-0001", "scene-0003"}
-    assert NuScenesTracking(world, "v1.0-mini", TRAINING_SPLITS["train"]).scenes == ["scene-0004"]
-    assert NuScenesTracking(world, "v1.0-mini", TRAINING_SPLITS["val"]).scenes == ["scene-0001"]
+    assert NuScenesTracking(world, "v1.0-mini", SOT_SPLITS["train"]).scenes == ["scene-0004"]
+    assert NuScenesTracking(world, "v1.0-mini", SOT_SPLITS["val"]).scenes == ["scene-0001"]
     assert NuScenesTracking(world, "v1.0-mini", "val").scenes == ["scene-0003"]
     cats = {t.category for t in NuScenesTracking(world, "v1.0-mini", "all").tracklets}
     assert {"Car", "Pedestrian", "Truck", "Bicycle"} <= cats
@@ -426,3 +428,65 @@ def test_devkit_agrees(world, tmp_path):
     report = compare.compare(str(world), "v1.0-mini", json.loads(out.read_text()), tol=1e-4)
     assert report["errors"] == []
     assert report["annotations"] > 100 and report["max_centre_size_err"] < 1e-4
+
+
+# --------------------------------------------------------------------------- CLI and training
+
+
+def test_cli_generate_and_eval_nuscenes(world, tmp_path, capsys):
+    from training.cli import main
+
+    out = tmp_path / "g"
+    assert main(["generate", "--layout", "nuscenes", "--preset", "tiny", "--out", str(out),
+                 "--version", "v1.0-custom", "--no-progress"]) == 0
+    assert "nuScenes-layout world written to" in capsys.readouterr().out
+    assert (out / "v1.0-custom" / "sample_annotation.json").is_file()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["sensor"] == "hdl32" and manifest["layout"]["version"] == "v1.0-custom"
+    # Same seed, same bytes as the fixture's world (version folder aside).
+    for name in ("sample_annotation", "ego_pose", "scene"):
+        assert (out / "v1.0-custom" / f"{name}.json").read_bytes() == \
+            (world / "v1.0-mini" / f"{name}.json").read_bytes()
+    assert main(["generate", "--preset", "tiny", "--out", str(tmp_path / "k"),
+                 "--version", "v1.0-mini"]) == 2
+    assert "--version applies to --layout nuscenes" in capsys.readouterr().err
+
+    report_dir = tmp_path / "eval"
+    assert main(["eval", "--dataset", "nuscenes", "--root", str(world), "--version", "v1.0-mini",
+                 "--split", "test", "--tracker", "previous_box", "--no-progress",
+                 "--out", str(report_dir)]) == 0
+    report = json.loads((report_dir / "report.json").read_text())["previous_box"]
+    frames = sum(len(t) for t in NuScenesTracking(world, "v1.0-mini", "val",
+                                                       get_setting("nuscenes-1").categories)
+                 .tracklets if len(t) >= 2)
+    assert report["observed"]["frames"] + report["unseen"]["frames"] == frames
+
+
+def test_training_loads_nuscenes_roles(world):
+    from training.config import TrainConfig
+    from training.samples import load_tracklets
+
+    tracklets, setting, root = load_tracklets(
+        "nuscenes", "train", setting="nuscenes-2", data_root=str(world), version="v1.0-mini"
+    )
+    assert {t.scene for t in tracklets} == {"scene-0004"}  # train_track
+    assert {t.category for t in tracklets} <= set(setting.observed)
+    val, _, _ = load_tracklets("nuscenes", "val", setting="nuscenes-2", data_root=str(world),
+                               version="v1.0-mini")
+    assert {t.scene for t in val} == {"scene-0001"}  # train_detect, never the test split
+    TrainConfig(dataset="nuscenes", setting="nuscenes-1").validate()
+
+
+def test_selection_on_nuscenes_layout_worlds():
+    from training.selection import SelectionConfig, ValPart, score_candidates
+
+    with pytest.raises(ValueError, match="dataset must be 'synthetic' or 'nuscenes'"):
+        SelectionConfig(dataset="kitti")
+    config = SelectionConfig(setting="nuscenes-1", preset="tiny", sensor="hdl32",
+                             parts=(ValPart(1, "test"),), num_envs=1, dataset="nuscenes")
+    rows = score_candidates(["previous_box"], config)
+    from envs.synthetic.nuscenes_layout import ensure_nuscenes_world
+
+    data = NuScenesTracking(ensure_nuscenes_world("tiny", "hdl32", 1), "v1.0-mini", "val",
+                            get_setting("nuscenes-1").observed)
+    assert rows[0]["frames"] == sum(len(t) for t in data.tracklets if len(t) >= 2)

@@ -44,7 +44,7 @@ __all__ = [
     "NUSCENES_CATEGORIES",
     "POINT_FIELDS",
     "TABLES",
-    "TRAINING_SPLITS",
+    "SOT_SPLITS",
     "NuScenesScans",
     "NuScenesTracking",
     "quaternion_to_matrix",
@@ -89,11 +89,16 @@ CATEGORY_MAP: dict[str, str] = {
 }
 NUSCENES_CATEGORIES: tuple[str, ...] = tuple(sorted(set(CATEGORY_MAP.values())))
 
-# The splits ``pointtrack train --dataset nuscenes`` reads for its "train" and "val" roles:
-# Open3DSOT trains on ``train_track``; the in-training validation uses the other half of the
-# official train scenes, ``train_detect``, so that the official ``val`` split — the test split
-# of the SOT literature — is never used to choose a model.
-TRAINING_SPLITS: dict[str, str] = {"train": "train_track", "val": "train_detect"}
+# The project's split roles (train / val / test, as for KITTI: what the CLI's ``--split`` and
+# the training code name) -> official nuScenes splits. Open3DSOT trains on ``train_track`` and
+# tests on the labelled ``val``; model selection uses the other half of the official train
+# scenes, ``train_detect``, so that the test split is never used to choose a model.
+SOT_SPLITS: dict[str, str] = {
+    "train": "train_track",
+    "val": "train_detect",
+    "test": "val",
+    "all": "all",
+}
 
 _SPLITS_FILE = Path(__file__).with_name("nuscenes_splits.json")
 

@@ -24,7 +24,7 @@ nuScenes conventions (size ``(w, l, h)``, quaternion ``(w, x, y, z)``).
 
 Scene names come from the official split lists, by KITTI role of the preset's scene number:
 0-16 (train) -> ``train_track``, 17-18 (val) -> ``train_detect``, 19-20 (test) -> ``val`` (the
-SOT test split), so :data:`envs.data.nuscenes.TRAINING_SPLITS` and ``split="val"`` name them.
+SOT test split), so the roles of :data:`envs.data.nuscenes.SOT_SPLITS` name them.
 """
 
 from __future__ import annotations
