@@ -26,10 +26,12 @@ so an instance missing from some samples keeps one tracklet with a gap, as in th
 
 from __future__ import annotations
 
+import gc
 import json
 import warnings
-from collections.abc import Sequence
-from functools import cache
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from functools import cache, cached_property
 from pathlib import Path
 
 import numpy as np
@@ -260,6 +262,19 @@ class NuScenesScans:
 # --------------------------------------------------------------------------- tables
 
 
+@contextmanager
+def _gc_paused() -> Iterator[None]:
+    """Pause the cyclic garbage collector: parsing millions of JSON records (which form no
+    cycles) would otherwise trigger repeated full collections over all of them."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def _load_table(table_dir: Path, name: str) -> list[dict]:
     path = table_dir / f"{name}.json"
     if not path.is_file():
@@ -274,14 +289,18 @@ def _load_table(table_dir: Path, name: str) -> list[dict]:
 
 
 class _Table:
-    """A loaded table with its token index (built once)."""
+    """A loaded table with its token index (built once, on first use: the reader never looks
+    up sample_data or sample_annotation records by token, the two largest tables)."""
 
     def __init__(self, table_dir: Path, name: str) -> None:
         self.name = name
         self.path = table_dir / f"{name}.json"
         self.records = _load_table(table_dir, name)
+
+    @cached_property
+    def index(self) -> dict[str, int]:
         try:
-            self.index = {r["token"]: i for i, r in enumerate(self.records)}
+            return {r["token"]: i for i, r in enumerate(self.records)}
         except (KeyError, TypeError):
             raise ValueError(f"nuScenes table {self.path}: a record has no 'token'") from None
 
@@ -377,7 +396,8 @@ class NuScenesTracking:
                 f"nuScenes root {self.root}: no version folder {table_dir}; "
                 f"found: {', '.join(found) if found else 'none'}"
             )
-        t = {name: _Table(table_dir, name) for name in TABLES}
+        with _gc_paused():
+            t = {name: _Table(table_dir, name) for name in TABLES}
         self.tracklets: list[Tracklet] = []
         self.instance_tokens: list[str] = []
         self.annotation_tokens: list[tuple[str, ...]] = []
