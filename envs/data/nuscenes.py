@@ -363,7 +363,8 @@ class NuScenesTracking:
         cache_size: scans kept per scene.
 
     Attributes:
-        tracklets: ordered by scene (split order), then instance (first key frame, then token).
+        tracklets: ordered by scene (split order), then instance (by first key frame, then
+            instance table order); ``track_id`` numbers them within the scene.
         instance_tokens: the nuScenes instance token of each tracklet.
         annotation_tokens: per tracklet, the sample_annotation token of each frame.
         scenes: scene names read; root, version, split, categories.

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.data.nuscenes import LIDAR_CHANNEL, _official_splits
+from envs.data.nuscenes import LIDAR_CHANNEL, split_scenes
 from envs.synthetic.objects import CATEGORIES
 from envs.synthetic.scene import (
     LABEL_RANGE,
@@ -117,13 +117,12 @@ def _token(*parts: object) -> str:
 
 def scene_name(scene_id: int) -> str:
     """Official scene name for a preset scene number (see the module docstring)."""
-    splits = _official_splits()
     if 0 <= scene_id <= 16:
-        return splits["train_track"][scene_id]
+        return split_scenes("train_track")[scene_id]
     if 17 <= scene_id <= 18:
-        return splits["train_detect"][scene_id - 17]
+        return split_scenes("train_detect")[scene_id - 17]
     if 19 <= scene_id <= 20:
-        return splits["val"][scene_id - 19]
+        return split_scenes("val")[scene_id - 19]
     raise ValueError(f"scene number {scene_id} has no nuScenes name (0..20)")
 
 
