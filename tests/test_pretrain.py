@@ -207,6 +207,7 @@ def test_every_train_flag_reaches_the_config():
         "threads": ("2", "num_threads", 2), "device": ("cuda:1", "device", "cuda:1"),
         "val_max_tracklets": ("3", "val_max_tracklets", 3),
         "val_max_frames": ("11", "val_max_frames", 11),
+        "nuscenes_version": ("v1.0-mini", "nuscenes_version", "v1.0-mini"),
     }
     flags = {a.dest: a.option_strings[0] for a in parser._actions if a.dest not in not_config}
     missing = set(flags) - set(given)

@@ -35,7 +35,7 @@ def tracker_config(tracker: str, model_size: str = "default", extra: dict | None
 
 
 WEIGHTINGS = ("none", "decorrelation", "sam")
-DATASETS = ("synthetic", "kitti")
+DATASETS = ("synthetic", "kitti", "nuscenes")
 
 
 class ConfigError(ValueError):
@@ -61,6 +61,9 @@ class TrainConfig:
     sensor: str = "hdl64"
     world_seed: int = 0
     data_root: str | None = None  # KITTI root (dataset=kitti) or an existing synthetic root
+    # dataset=nuscenes: table folder (default v1.0-trainval under data_root, else v1.0-mini: the
+    # synthetic world written in nuScenes layout)
+    nuscenes_version: str | None = None
     setting: str | None = "kitti-1"  # class-agnostic setting (observed categories are trained)
     category: str | None = None  # class-specific mode: train on this one category instead
     candidates_per_frame: int = 4

@@ -122,6 +122,7 @@ def default_train_data(cfg: TrainConfig):
     tracklets, _, root = load_tracklets(
         cfg.dataset, "train", setting=cfg.setting, category=cfg.category, preset=cfg.preset,
         sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
+        version=cfg.nuscenes_version,
     )
     data = TrackingSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed,
                            size_jitter=cfg.size_jitter)
@@ -148,6 +149,7 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
     tracklets, _, _ = load_tracklets(
         cfg.dataset, "val", setting=cfg.setting, category=cfg.category, preset=cfg.preset,
         sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
+        version=cfg.nuscenes_version,
     )  # observed categories only: model selection never sees the unseen ones
     if cfg.val_max_tracklets is not None and len(tracklets) > cfg.val_max_tracklets:
         pick = np.linspace(0, len(tracklets) - 1, cfg.val_max_tracklets).round().astype(int)

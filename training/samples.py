@@ -251,9 +251,14 @@ def load_tracklets(
     world_seed: int = 0,
     data_root: str | None = None,
     trained_only: bool = True,
+    version: str | None = None,
 ):
     """Tracklets of a split: the observed categories of ``setting`` (class-agnostic) or the one
     ``category`` (class-specific); ``trained_only=False`` keeps the unseen ones too (validation).
+
+    ``dataset="nuscenes"`` reads the nuScenes layout (``data_root``, or the synthetic world in
+    that layout) with ``split`` a role mapped by ``envs.data.nuscenes.SOT_SPLITS`` and
+    ``version`` the table folder.
 
     Returns ``(tracklets, categories, root)``; raises ``ValueError`` when none are found.
     """
@@ -261,7 +266,18 @@ def load_tracklets(
 
     st = class_specific(category) if category else get_setting(setting)
     cats = st.observed if trained_only else st.categories
-    if data_root:
+    if dataset == "nuscenes":
+        from envs.data.nuscenes import SOT_SPLITS, NuScenesTracking
+
+        if data_root:
+            root, version = data_root, version or "v1.0-trainval"
+        else:
+            from envs.synthetic.nuscenes_layout import DEFAULT_VERSION, ensure_nuscenes_world
+
+            version = version or DEFAULT_VERSION
+            root = str(ensure_nuscenes_world(preset, sensor, world_seed, version))
+        data = NuScenesTracking(root, version, SOT_SPLITS[split], list(cats))
+    elif data_root:
         root = data_root
     elif dataset == "synthetic":
         from envs.synthetic import ensure_world
@@ -269,7 +285,8 @@ def load_tracklets(
         root = str(ensure_world(preset=preset, sensor=sensor, seed=world_seed))
     else:
         raise ValueError("dataset=kitti needs data_root")
-    data = KittiTracking(root, split=split, categories=list(cats))
+    if dataset != "nuscenes":
+        data = KittiTracking(root, split=split, categories=list(cats))
     tracklets = [tr for tr in data.tracklets if len(tr) >= 2]
     if not tracklets:
         raise ValueError(

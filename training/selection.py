@@ -95,6 +95,8 @@ class SelectionConfig:
         setting: class-agnostic setting (``"kitti-1"``) or ``"class-specific:<Category>"``; only
             its observed categories are scored.
         preset, sensor: the synthetic worlds (see ``envs.synthetic``).
+        dataset: ``"synthetic"`` (KITTI layout) or ``"nuscenes"`` (the same worlds written in
+            nuScenes layout; a part's split is a role, see ``envs.data.nuscenes.SOT_SPLITS``).
         parts: the world splits pooled into one score.
         train_world_seed: the world the candidates were trained on (guards its train/test).
         eval_seed: seed of the point resampling (``training.evaluate.evaluate``).
@@ -108,9 +110,12 @@ class SelectionConfig:
     train_world_seed: int = 0
     eval_seed: int = 0
     num_envs: int = 8
+    dataset: str = "synthetic"
 
     def __post_init__(self) -> None:
         check_parts(self.parts, self.train_world_seed)
+        if self.dataset not in ("synthetic", "nuscenes"):
+            raise ValueError(f"dataset must be 'synthetic' or 'nuscenes', got {self.dataset!r}")
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
 
@@ -210,9 +215,20 @@ def score_candidates(
                 "setting": config.setting, "preset": config.preset, "sensor": config.sensor,
                 "eval_seed": config.eval_seed, "num_envs": config.num_envs,
             }
+            if config.dataset != "synthetic":  # keys of earlier (synthetic) caches unchanged
+                key["dataset"] = config.dataset
             path = _cache_path(cache, part, candidate, digests[candidate]) if cache else None
             report = _read_cached(path, key)
             if report is None:
+                if env is None and config.dataset == "nuscenes":
+                    from envs.data.nuscenes import SOT_SPLITS
+                    from envs.nuscenes_env import make_nuscenes_env
+
+                    env = make_nuscenes_env(
+                        preset=config.preset, sensor=config.sensor, seed=part.world_seed,
+                        split=SOT_SPLITS[part.split], setting=config.setting,
+                        categories=observed,
+                    )
                 if env is None:
                     env = make_synthetic_env(
                         preset=config.preset, sensor=config.sensor, seed=part.world_seed,

@@ -52,14 +52,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     """The dataset / env flags shared by `eval` and `demo`."""
-    parser.add_argument("--dataset", choices=("synthetic", "kitti"), default="synthetic",
-                        help="a synthetic world (generated once into the cache) or a KITTI root")
+    parser.add_argument(
+        "--dataset", choices=("synthetic", "kitti", "nuscenes"), default="synthetic",
+        help="a synthetic world (generated once into the cache), a KITTI root or a nuScenes root",
+    )
     parser.add_argument(
         "--root",
         default=None,
         metavar="DIR",
-        help="a KITTI tracking root or a generated world (label_02/, calib/, velodyne/); "
-        "needed with --dataset kitti",
+        help="KITTI tracking root or a generated world (label_02/, calib/, velodyne/); needed "
+        "with --dataset kitti. nuScenes dataroot (v1.0-*/, samples/) with --dataset nuscenes "
+        "(without it: the synthetic world in nuScenes layout, --preset/--sensor/--seed)",
+    )
+    parser.add_argument(
+        "--version",
+        default=None,
+        help="--dataset nuscenes: table folder (default v1.0-trainval with --root, else "
+        "v1.0-mini); --split train/val/test read train_track/train_detect/val",
     )
     parser.add_argument("--preset", default="small", help="synthetic preset (tiny, small, default)")
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
@@ -94,7 +103,7 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """``TrackingEnv`` / factory keywords from the parsed arguments."""
     setting = args.setting
     if setting is None and not args.categories:
-        setting = "kitti-1"
+        setting = "nuscenes-1" if getattr(args, "dataset", None) == "nuscenes" else "kitti-1"
     return {
         "split": args.split,
         "setting": setting,
@@ -111,6 +120,16 @@ def build_env(args: argparse.Namespace, **overrides: Any):
 
     kwargs = env_kwargs(args)
     kwargs.update(overrides)
+    if args.dataset == "nuscenes":
+        from envs.data.nuscenes import SOT_SPLITS
+        from envs.nuscenes_env import make_nuscenes_env
+
+        kwargs["split"] = SOT_SPLITS[kwargs["split"]]
+        if args.root:
+            return make_nuscenes_env(root=args.root, version=args.version, **kwargs)
+        return make_nuscenes_env(
+            version=args.version, preset=args.preset, sensor=args.sensor, seed=args.seed, **kwargs
+        )
     if args.dataset == "kitti" and not args.root:
         raise SystemExit("pointtrack eval: --dataset kitti needs --root DIR")
     if not args.root:

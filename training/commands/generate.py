@@ -1,4 +1,5 @@
-"""`pointtrack generate`: write a synthetic LiDAR world in the KITTI tracking layout."""
+"""`pointtrack generate`: write a synthetic LiDAR world in the KITTI tracking layout, or with
+``--layout nuscenes`` in the nuScenes v1.0 layout (``envs.synthetic.nuscenes_layout``)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(21 scenes split like KITTI)",
     )
     parser.add_argument(
-        "--sensor", default="hdl64", help="hdl64 (KITTI-like, 64 beams) or hdl32 (nuScenes-like)"
+        "--sensor", default=None,
+        help="hdl64 (KITTI-like, 64 beams) or hdl32 (nuScenes-like); default per layout",
+    )
+    parser.add_argument(
+        "--layout", choices=("kitti", "nuscenes"), default="kitti",
+        help="kitti (label_02/, calib/, velodyne/) or nuscenes (VERSION/*.json, samples/LIDAR_TOP; "
+        "2 Hz key frames, default sensor hdl32)",
+    )
+    parser.add_argument(
+        "--version", default=None, help="--layout nuscenes: table folder (default v1.0-mini)"
     )
     parser.add_argument("--seed", type=int, default=0, help="non-negative integer seed")
     parser.add_argument(
@@ -77,11 +87,16 @@ def run(args: argparse.Namespace) -> int:
             )
             return 2
     start = time.perf_counter()
+    if args.layout == "nuscenes":
+        return _run_nuscenes(args, start)
+    if args.version is not None:
+        print("pointtrack generate: --version applies to --layout nuscenes", file=sys.stderr)
+        return 2
     try:
         root = generate_world(
             args.out,
             args.preset,
-            args.sensor,
+            args.sensor or "hdl64",
             args.seed,
             args.from_labels,
             progress=False if args.no_progress else True,
@@ -98,4 +113,29 @@ def run(args: argparse.Namespace) -> int:
     if args.preview:
         png = save_preview(root, root / "preview.png")
         print(f"preview: {png}")
+    return 0
+
+
+def _run_nuscenes(args: argparse.Namespace, start: float) -> int:
+    from envs.synthetic.nuscenes_layout import DEFAULT_VERSION, generate_nuscenes_world
+
+    if args.from_labels or args.scan_frames is not None or args.scenes:
+        print("pointtrack generate: --from-labels, --scan-frames and --scenes apply to "
+              "--layout kitti", file=sys.stderr)
+        return 2
+    try:
+        root = generate_nuscenes_world(
+            args.out, args.preset, args.sensor or "hdl32", args.seed,
+            args.version or DEFAULT_VERSION, progress=False if args.no_progress else True,
+            overwrite=args.overwrite,
+        )
+    except (ValueError, FileExistsError) as exc:
+        print(f"pointtrack generate: {exc}", file=sys.stderr)
+        return 2
+    elapsed = time.perf_counter() - start
+    size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+    print(f"nuScenes-layout world written to {root} in {elapsed:.1f} s ({size / 1e6:.1f} MB)")
+    if args.preview:
+        print("pointtrack generate: --preview draws KITTI-layout worlds only; skipped",
+              file=sys.stderr)
     return 0

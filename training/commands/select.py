@@ -31,6 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="default", help="synthetic preset (default: default)")
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (default: hdl64)")
     parser.add_argument(
+        "--dataset", choices=("synthetic", "nuscenes"), default="synthetic",
+        help="the worlds in KITTI layout (synthetic) or written in nuScenes layout (nuscenes)",
+    )
+    parser.add_argument(
         "--train-world", type=int, default=0, metavar="SEED",
         help="world seed the candidates were trained on: its train and test splits are refused",
     )
@@ -53,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         config = SelectionConfig(
             setting=args.setting, preset=args.preset, sensor=args.sensor,
             parts=tuple(ValPart.parse(p) for p in args.parts), train_world_seed=args.train_world,
-            eval_seed=args.eval_seed, num_envs=args.num_envs,
+            eval_seed=args.eval_seed, num_envs=args.num_envs, dataset=args.dataset,
         )
         out = Path(args.out) if args.out else None
         rows = score_candidates(

@@ -38,8 +38,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tracker widths: the papers' (default) or slim (CPU training)")
     parser.add_argument("--weighting", choices=("none", "decorrelation", "sam"),
                         help="none (-U), decorrelation (-W), sam (-S)")
-    parser.add_argument("--dataset", choices=("synthetic", "kitti"),
-                        help="synthetic world (generated once into the cache) or a KITTI root")
+    parser.add_argument("--dataset", choices=("synthetic", "kitti", "nuscenes"),
+                        help="synthetic world (generated once into the cache), a KITTI root or "
+                        "a nuScenes root (--data-root)")
+    parser.add_argument("--version", dest="nuscenes_version",
+                        help="--dataset nuscenes: table folder (v1.0-trainval under --data-root, "
+                             "else v1.0-mini, the synthetic world in nuScenes layout)")
     parser.add_argument("--preset", help="synthetic world preset (tiny, small, default)")
     parser.add_argument("--sensor", help="synthetic LiDAR profile (hdl64, hdl32)")
     parser.add_argument("--data-root", dest="data_root", help="KITTI tracking root")
