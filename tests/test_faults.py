@@ -374,7 +374,15 @@ def test_sigkill_in_the_cache_is_cleaned_on_next_use(tmp_path):
               "ensure_world('tiny', 'hdl64', 4, cache_dir=sys.argv[1])")
     cache = tmp_path / "cache"
     ensure_world("tiny", "hdl64", 0, cache_dir=cache)
-    _kill_after([sys.executable, "-c", script, str(cache)], 3.0, ready="ready")
+    # kill as soon as the writer's temp directory exists: a fixed delay is too early on a loaded
+    # machine and too late on an idle one (the tiny world takes a few seconds)
+    proc = subprocess.Popen([sys.executable, "-c", script, str(cache)], env=_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while not _leftovers(cache) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
     assert _leftovers(cache), "the kill should have left a temp directory"
     ensure_world("tiny", "hdl64", 0, cache_dir=cache)  # exists: reused, and the cache cleaned
     assert _leftovers(cache) == []
