@@ -305,14 +305,22 @@ class M2Track(Tracker):
         in the reference frame, the motion in the previous box's frame)."""
         previous, current = batch["previous_search"], batch["search"]
         cloud = motion_cloud(previous, current, batch["size"], batch["prior_is_gt"])
-        n_p = previous.shape[1]
+        fast = not self.training and self.fast_eval and cloud.shape[0] == 1
+        inverse = None
+        if fast:
+            # one sample on the fast eval path: resampling repeats points, and every layer is
+            # per point until a max-pool, so each distinct row is computed once (exact); the
+            # time channel keeps the two frames' rows apart
+            unique, inverse = torch.unique(cloud[0], dim=0, return_inverse=True)
+            cloud = unique[None]
+        is_prev = cloud[..., 3] == TIME_PREVIOUS  # (B, N)
         seg_logits = self.seg(cloud)
         # hard assignment, as published: the target points go on, the others are zeroed
         target = (seg_logits[..., 1] > seg_logits[..., 0]).to(cloud.dtype)[..., None]
         masked = cloud[..., :4] * target
-        # fast eval of one sample: the zeroed (background) rows are all equal, so the max-pools
-        # need only the target rows and one background row (exact)
-        rows = self._pooled_rows(target[..., 0], n_p)
+        # fast path: the zeroed (background) rows of a frame are all equal, so the max-pools
+        # need only the target rows and one background row per frame (exact)
+        rows = self._pooled_rows(target[..., 0], is_prev) if fast else None
         feature = self.motion_net(masked if rows is None else masked[:, rows])
         motion = self.motion_head(feature)
         motion_logits = self.state_head(feature)
@@ -322,27 +330,27 @@ class M2Track(Tracker):
         aux_box = offset_boxes(prev_box, motion_used)
         # second stage: previous target points moved by the motion (in the previous box's
         # frame), merged with the current ones, in the first-stage box's frame
-        prev_pts = masked[:, :n_p, :3]
-        moved = from_box_frame(offset_points(to_box_frame(prev_pts, prev_box), motion_used),
-                               prev_box)
-        merged = torch.cat([moved, masked[:, n_p:, :3]], dim=1)
+        xyz = masked[..., :3]
+        moved = from_box_frame(offset_points(to_box_frame(xyz, prev_box), motion_used), prev_box)
+        merged = torch.where(is_prev[..., None], moved, xyz)
         merged = to_box_frame(merged if rows is None else merged[:, rows], aux_box)
         box = offset_boxes(aux_box, self.box_head(self.box_net(merged)))
+        if inverse is not None:
+            seg_logits = seg_logits[:, inverse]
         return {"seg_logits": seg_logits, "motion": motion, "motion_logits": motion_logits,
                 "prev_box": prev_box, "aux_box": aux_box, "box": box, "feature": feature,
                 "proposals": box[:, None, :], "scores": box.new_zeros(box.shape[0], 1)}
 
-    def _pooled_rows(self, target: torch.Tensor, n_p: int) -> torch.Tensor | None:
-        """On the fast eval path at batch 1: the indices ``(K,)`` of the target rows of
-        ``target (1, N)`` plus the first background row of each frame (the background rows of a
-        frame are equal in both mini PointNets' inputs); ``None`` otherwise (every row)."""
-        if self.training or not self.fast_eval or target.shape[0] != 1:
-            return None
+    @staticmethod
+    def _pooled_rows(target: torch.Tensor, is_prev: torch.Tensor) -> torch.Tensor:
+        """The indices ``(K,)`` of the target rows of ``target (1, N)`` plus the first
+        background row of each frame (``is_prev (1, N)``): the background rows of a frame are
+        equal in both mini PointNets' inputs."""
         keep = target[0] > 0
-        for part in (keep[:n_p], keep[n_p:]):
-            background = (~part).nonzero()
+        for frame in (is_prev[0], ~is_prev[0]):
+            background = (~keep & frame).nonzero()
             if len(background):
-                part[background[0, 0]] = True  # a view of keep
+                keep[background[0, 0]] = True
         return keep.nonzero()[:, 0]
 
     def features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
