@@ -14,6 +14,7 @@ from envs.geometry import points_in_box
 from trackers.m2track import (
     PREVIOUS_SEARCH_OPTION,
     M2Track,
+    box_cloud,
     motion_cloud,
     offset_boxes,
     offset_points,
@@ -271,3 +272,50 @@ def test_missing_previous_search_names_the_env_option():
     bad["search"] = bad["search"].astype(np.float64) * np.nan
     with pytest.raises(ValueError, match="NaN"):
         model.act(bad)
+
+
+def test_box_cloud_matches_the_corner_distances():
+    from envs.geometry import box_to_world
+
+    g = torch.Generator().manual_seed(7)
+    pts = torch.randn(2, 6, 3, generator=g)
+    boxes = torch.randn(2, 4, generator=g)
+    size = torch.tensor([[4.0, 1.8, 1.5], [0.8, 0.6, 1.7]])
+    got = box_cloud(pts, boxes, size)
+    assert got.shape == (2, 6, 9)
+    for i in range(2):
+        box7 = np.array([*boxes[i, :3].tolist(), *size[i].tolist(), float(boxes[i, 3])])
+        l, w, h = size[i].tolist()
+        corners = np.array([[sx * l / 2, sy * w / 2, sz * h / 2] for sx, sy, sz in
+                            [(1, 1, 1), (1, -1, 1), (1, -1, -1), (1, 1, -1),
+                             (-1, 1, 1), (-1, -1, 1), (-1, -1, -1), (-1, 1, -1)]])
+        keypoints = box_to_world(np.vstack([np.zeros(3), corners]), box7)
+        expect = np.linalg.norm(pts[i].numpy()[:, None] - keypoints[None], axis=-1)
+        np.testing.assert_allclose(got[i].numpy(), expect, atol=1e-5)
+
+
+def test_box_aware_variant_trains_acts_and_round_trips(tmp_path):
+    model = trackers.make("m2track", **TINY, box_aware=True)
+    plain = trackers.make("m2track", **TINY)
+    assert "box_cloud" in model.config.loss_weights
+    assert "box_cloud" not in plain.config.loss_weights
+    batch = _clouds(2, n=64)
+    cloud = motion_cloud(batch["previous_search"], batch["search"], batch["size"],
+                         batch["prior_is_gt"], box_aware=True)
+    assert cloud.shape == (2, 128, 14) and (cloud[:, 64:, 5:] == 0).all()
+    torch.testing.assert_close(cloud[:, :64, 5:], box_cloud(
+        batch["previous_search"], torch.zeros(2, 4), batch["size"]))
+    out = model(batch)
+    assert out["box_cloud"].shape == (2, 128, 9)
+    targets = {**_targets(batch), "box_cloud": torch.rand(2, 128, 9)}
+    terms = model.loss(out, targets)
+    torch.testing.assert_close(terms["box_cloud"].mean(),
+                               F.smooth_l1_loss(out["box_cloud"], targets["box_cloud"]))
+    with pytest.raises(KeyError, match="box_cloud"):
+        model.loss(out, _targets(batch))
+    model.eval()
+    obs = _obs(2, seed=3)
+    path = trackers.save(model, tmp_path / "ba.safetensors")
+    np.testing.assert_array_equal(trackers.load(path).act(obs), model.act(obs))
+    model.fast_eval = False
+    np.testing.assert_allclose(model.act(obs), trackers.load(path).act(obs), atol=1e-5)

@@ -42,7 +42,7 @@ def test_samples_shapes_determinism_and_epochs():
     s = data[5]
     shapes = {"search": (1024, 3), "previous_search": (1024, 3), "size": (3,), "prior_is_gt": (),
               "seg_labels": (2048,), "box": (4,), "prev_box": (4,), "motion_box": (4,),
-              "moving": ()}
+              "moving": (), "box_cloud": (2048, 9)}
     assert set(shapes) == set(BATCH_KEYS) | set(TARGET_KEYS)
     for key, shape in shapes.items():
         assert tuple(s[key].shape) == shape and torch.isfinite(s[key]).all(), key
@@ -88,6 +88,13 @@ def test_unaugmented_samples_are_crops_of_the_scans_with_consistent_labels():
         moved = apply_offset(prev_box, s["motion_box"].astype(np.float64))
         np.testing.assert_allclose(moved[:3], box[:3], atol=1e-4)
         assert s["moving"] == float(np.linalg.norm(gt[:3] - prev_gt[:3]) > 0.15)
+        # BoxCloud targets: column 0 is the distance to the frame's box centre, the largest
+        # corner distance is at least half the box diagonal
+        centres = np.r_[np.repeat(prev_box[None, :3], 1024, 0), np.repeat(box[None, :3], 1024, 0)]
+        points = np.r_[s["previous_search"], s["search"]]
+        np.testing.assert_allclose(s["box_cloud"][:, 0], np.linalg.norm(points - centres, axis=1),
+                                   atol=1e-4)
+        assert (s["box_cloud"][1024:, 1:].max(1) >= 0.5 * np.linalg.norm(gt[3:6]) - 1e-4).all()
     assert max(shifts) > 0.05
 
 

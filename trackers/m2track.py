@@ -38,8 +38,13 @@ cross-entropy (0.1); smooth-L1 of the centre (weight 2) and of ``sin(yaw)`` (wei
 motion (moving samples only), the refined previous box, the first-stage box and the final box.
 Targets: see :mod:`training.motion_samples`.
 
-The box-aware enhancement of Open3DSOT's KITTI configuration (BAT's BoxCloud as 9 extra input
-channels and an auxiliary regression) is not implemented: ``box_aware`` is not a config field.
+Box-aware enhancement (``box_aware=True``, off by default; Open3DSOT's KITTI configuration turns
+it on): BAT's BoxCloud (Zheng et al., "Box-Aware Feature Enhancement for Single Object Tracking
+on Point Clouds", ICCV 2021), each point's distances to the centre and the 8 corners of a box,
+as 9 more input channels (previous frame: to the reference box; current frame: zeros); the
+segmentation network also predicts each point's BoxCloud to its frame's ground-truth box
+(smooth-L1, weight 1), and the predicted BoxCloud of the target points joins both mini
+PointNets' inputs.
 """
 
 from __future__ import annotations
@@ -58,7 +63,7 @@ from trackers.base import Tracker, TrackerConfig
 from trackers.layers import MLP
 from trackers.registry import register
 
-__all__ = ["M2Track", "M2TrackConfig", "motion_cloud", "prepare_motion_observation"]
+__all__ = ["M2Track", "M2TrackConfig", "box_cloud", "motion_cloud", "prepare_motion_observation"]
 
 #: The env option that adds the previous frame's points to the observation.
 PREVIOUS_SEARCH_OPTION = 'TrackingEnv(..., observation_keys=(..., "previous_search"))'
@@ -83,6 +88,7 @@ class M2TrackConfig(TrackerConfig):
     point_channels: list[int] = field(default_factory=lambda: [64, 128, 256, 512])
     hidden_channels: list[int] = field(default_factory=lambda: [512, 256])
     head_channels: list[int] = field(default_factory=lambda: [128, 128])
+    box_aware: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -111,14 +117,15 @@ class MiniPointNet(nn.Module):
 
 
 class SegPointNet(nn.Module):
-    """Per-point logits ``(B, N, 2)`` of a cloud ``(B, N, C)``: local (second-layer) features
-    concatenated with the max-pooled global ones."""
+    """Per-point outputs ``(B, N, out)`` of a cloud ``(B, N, C)``: local (second-layer)
+    features concatenated with the max-pooled global ones."""
 
-    def __init__(self, in_channels: int, channels: list[int], head: list[int]) -> None:
+    def __init__(self, in_channels: int, channels: list[int], head: list[int],
+                 out_channels: int = 2) -> None:
         super().__init__()
         self.local = MLP([in_channels, *channels[:2]])
         self.glob = MLP(channels[1:])
-        self.head = MLP([channels[1] + channels[-1], *head, 2], last_activation=False)
+        self.head = MLP([channels[1] + channels[-1], *head, out_channels], last_activation=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         local = self.local(x)
@@ -161,9 +168,22 @@ def from_box_frame(points: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
     return torch.stack([x, y, points[..., 2] + box[:, None, 2]], dim=-1)
 
 
+def box_cloud(points: torch.Tensor, boxes: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """BAT's BoxCloud: distances ``(B, N, 9)`` of points ``(B, N, 3)`` to the centre and the 8
+    corners of boxes ``(B, 4)`` ``(x, y, z, yaw)`` of ``size (B, 3)`` (``l, w, h``), in the
+    nuScenes corner order."""
+    signs = points.new_tensor([[0, 0, 0], [1, 1, 1], [1, -1, 1], [1, -1, -1], [1, 1, -1],
+                               [-1, 1, 1], [-1, -1, 1], [-1, -1, -1], [-1, 1, -1]])
+    keypoints = signs[None] * (0.5 * size[:, None, :])  # (B, 9, 3) in the box frame
+    local = to_box_frame(points, boxes)
+    return torch.linalg.vector_norm(local[:, :, None, :] - keypoints[:, None], dim=-1)
+
+
 def motion_cloud(previous: torch.Tensor, current: torch.Tensor, size: torch.Tensor,
-                 prior_is_gt: torch.Tensor) -> torch.Tensor:
-    """The merged two-frame cloud ``(B, N_p + N_c, 5)``: ``xyz``, time, prior-targetness mask.
+                 prior_is_gt: torch.Tensor, box_aware: bool = False) -> torch.Tensor:
+    """The merged two-frame cloud ``(B, N_p + N_c, 5)``: ``xyz``, time, prior-targetness mask
+    (``box_aware``: ``(B, N_p + N_c, 14)``, plus the BoxCloud of the previous points to the
+    reference box and zeros for the current ones).
 
     ``previous (B, N_p, 3)`` and ``current (B, N_c, 3)`` in the reference-box frame (m);
     ``size (B, 3)`` the box's ``l, w, h`` (m); ``prior_is_gt (B,)`` whether the reference box is
@@ -180,6 +200,10 @@ def motion_cloud(previous: torch.Tensor, current: torch.Tensor, size: torch.Tens
                       mask_prev[..., None]], dim=-1)
     cur = torch.cat([current, current.new_full((b, n_c, 1), TIME_CURRENT),
                      current.new_full((b, n_c, 1), MASK_CURRENT)], dim=-1)
+    if box_aware:
+        reference = previous.new_zeros(b, 4)
+        prev = torch.cat([prev, box_cloud(previous, reference, size)], dim=-1)
+        cur = torch.cat([cur, current.new_zeros(b, n_c, 9)], dim=-1)
     return torch.cat([prev, cur], dim=1)
 
 
@@ -257,7 +281,7 @@ class M2Track(Tracker):
         "center_motion": 2.0, "angle_motion": 10.0,
         "center_prev": 2.0, "angle_prev": 10.0,
         "center_aux": 2.0, "angle_aux": 10.0,
-        "center": 2.0, "angle": 10.0}
+        "center": 2.0, "angle": 10.0, "box_cloud": 1.0}
     sizes: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
         "slim": {"seg_channels": [32, 32, 64, 128, 256], "seg_head_channels": [128, 64, 64, 64],
@@ -272,13 +296,16 @@ class M2Track(Tracker):
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__(config, **overrides)
         cfg = self.config
-        self.seg = SegPointNet(5, cfg.seg_channels, cfg.seg_head_channels)
-        self.motion_net = MiniPointNet(4, cfg.point_channels, cfg.hidden_channels)
+        bc = 9 if cfg.box_aware else 0
+        if not cfg.box_aware:  # no BoxCloud regression: the term does not exist
+            cfg.loss_weights = {k: v for k, v in cfg.loss_weights.items() if k != "box_cloud"}
+        self.seg = SegPointNet(5 + bc, cfg.seg_channels, cfg.seg_head_channels, 2 + bc)
+        self.motion_net = MiniPointNet(4 + bc, cfg.point_channels, cfg.hidden_channels)
         d = cfg.hidden_channels[-1]
         self.motion_head = MLP([d, *cfg.head_channels, 4], last_activation=False)
         self.state_head = MLP([d, *cfg.head_channels, 2], last_activation=False)
         self.prev_head = MLP([d, *cfg.head_channels, 4], last_activation=False)
-        self.box_net = MiniPointNet(3, cfg.point_channels, cfg.hidden_channels)
+        self.box_net = MiniPointNet(3 + bc, cfg.point_channels, cfg.hidden_channels)
         self.box_head = MLP([d, *cfg.head_channels, 4], last_activation=False)
 
     def forward(self, batch: Mapping[str, torch.Tensor],
@@ -304,7 +331,8 @@ class M2Track(Tracker):
         ``feature (B, D)``, ``proposals (B, 1, 4)``, ``scores (B, 1)`` (boxes ``(x, y, z, yaw)``
         in the reference frame, the motion in the previous box's frame)."""
         previous, current = batch["previous_search"], batch["search"]
-        cloud = motion_cloud(previous, current, batch["size"], batch["prior_is_gt"])
+        box_aware = self.config.box_aware
+        cloud = motion_cloud(previous, current, batch["size"], batch["prior_is_gt"], box_aware)
         fast = not self.training and self.fast_eval and cloud.shape[0] == 1
         inverse = None
         if fast:
@@ -314,10 +342,14 @@ class M2Track(Tracker):
             unique, inverse = torch.unique(cloud[0], dim=0, return_inverse=True)
             cloud = unique[None]
         is_prev = cloud[..., 3] == TIME_PREVIOUS  # (B, N)
-        seg_logits = self.seg(cloud)
+        seg_out = self.seg(cloud)
+        seg_logits = seg_out[..., :2]
         # hard assignment, as published: the target points go on, the others are zeroed
         target = (seg_logits[..., 1] > seg_logits[..., 0]).to(cloud.dtype)[..., None]
         masked = cloud[..., :4] * target
+        if box_aware:  # the predicted BoxCloud of the target points joins both mini PointNets
+            masked_bc = seg_out[..., 2:] * target
+            masked = torch.cat([masked, masked_bc], dim=-1)
         # fast path: the zeroed (background) rows of a frame are all equal, so the max-pools
         # need only the target rows and one background row per frame (exact)
         rows = self._pooled_rows(target[..., 0], is_prev) if fast else None
@@ -333,13 +365,19 @@ class M2Track(Tracker):
         xyz = masked[..., :3]
         moved = from_box_frame(offset_points(to_box_frame(xyz, prev_box), motion_used), prev_box)
         merged = torch.where(is_prev[..., None], moved, xyz)
-        merged = to_box_frame(merged if rows is None else merged[:, rows], aux_box)
+        if box_aware:
+            merged = torch.cat([merged, masked_bc], dim=-1)
+        merged = merged if rows is None else merged[:, rows]
+        merged = torch.cat([to_box_frame(merged[..., :3], aux_box), merged[..., 3:]], dim=-1)
         box = offset_boxes(aux_box, self.box_head(self.box_net(merged)))
         if inverse is not None:
-            seg_logits = seg_logits[:, inverse]
-        return {"seg_logits": seg_logits, "motion": motion, "motion_logits": motion_logits,
-                "prev_box": prev_box, "aux_box": aux_box, "box": box, "feature": feature,
-                "proposals": box[:, None, :], "scores": box.new_zeros(box.shape[0], 1)}
+            seg_out = seg_out[:, inverse]
+        out = {"seg_logits": seg_out[..., :2], "motion": motion, "motion_logits": motion_logits,
+               "prev_box": prev_box, "aux_box": aux_box, "box": box, "feature": feature,
+               "proposals": box[:, None, :], "scores": box.new_zeros(box.shape[0], 1)}
+        if box_aware:
+            out["box_cloud"] = seg_out[..., 2:]
+        return out
 
     @staticmethod
     def _pooled_rows(target: torch.Tensor, is_prev: torch.Tensor) -> torch.Tensor:
@@ -365,9 +403,11 @@ class M2Track(Tracker):
         Targets: ``seg_labels (B, N_p + N_c)`` (1: target), ``box (B, 4)``, ``prev_box (B,
         4)`` (``x, y, z, yaw`` in the reference frame), ``motion_box (B, 4)`` (the current box in
         the previous box's frame), ``moving (B,)`` (1: the centre moved more than the motion
-        threshold). The batch-normalised terms of the paper (the class-weighted segmentation
-        mean, the motion loss over moving samples) are written per sample with their batch
-        normaliser, so the batch mean of each term is the published loss.
+        threshold); with ``box_aware``, ``box_cloud (B, N_p + N_c, 9)`` each point's BoxCloud to
+        its frame's ground-truth box. The batch-normalised terms of the paper (the
+        class-weighted segmentation mean, the motion loss over moving samples) are written per
+        sample with their batch normaliser, so the batch mean of each term is the published
+        loss.
         """
         need = ("seg_labels", "box", "prev_box", "motion_box", "moving")
         missing = [k for k in need if k not in targets]
@@ -397,6 +437,12 @@ class M2Track(Tracker):
             name = f"_{suffix}" if suffix else ""
             terms[f"center{name}"] = center
             terms[f"angle{name}"] = angle
+        if self.config.box_aware:
+            if "box_cloud" not in targets:
+                raise KeyError("box_aware m2track targets need 'box_cloud' (B, N_p + N_c, 9)")
+            terms["box_cloud"] = F.smooth_l1_loss(outputs["box_cloud"],
+                                                  targets["box_cloud"].float(),
+                                                  reduction="none").mean(dim=(1, 2))
         weights = self.config.loss_weights
         total = sum(weights[k] * terms[k] for k in weights)
         return {"total": total, **terms}

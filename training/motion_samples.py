@@ -23,7 +23,9 @@ One sample is ``(tracklet, frame t >= 1, candidate c)``, a pair of consecutive f
 Targets: ``seg_labels (2048,)`` points inside the augmented ground-truth box of their frame
 scaled 1.25 (previous frame first); ``box (4,)`` / ``prev_box (4,)`` the current / previous
 augmented ground truth ``(x, y, z, yaw)`` in the reference frame; ``motion_box (4,)`` the current
-one in the previous one's frame; ``moving ()`` 1 when their centres are more than 0.15 m apart.
+one in the previous one's frame; ``moving ()`` 1 when their centres are more than 0.15 m apart;
+``box_cloud (2048, 9)`` each point's BoxCloud (distances to the centre and corners) to its
+frame's augmented ground-truth box (the box-aware variant's target).
 
 Open3DSOT skips a pair whose previous ground-truth box holds 10 points or fewer or whose current
 crop holds 20 or fewer; here such a sample is replaced by another index drawn from the sample's
@@ -44,13 +46,14 @@ from torch.utils.data import Dataset
 
 from envs.geometry import box_to_world, boxes_in_frame, offset_between, points_in_box, world_to_box
 from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE, SEARCH_SIZE, resample_into
+from trackers.m2track import box_cloud
 from training.samples import crop_near
 
 __all__ = ["BATCH_KEYS", "TARGET_KEYS", "MotionSamples", "PreviousSearch", "augment_frame",
            "previous_search_crop"]
 
 BATCH_KEYS = ("search", "previous_search", "size", "prior_is_gt")
-TARGET_KEYS = ("seg_labels", "box", "prev_box", "motion_box", "moving")
+TARGET_KEYS = ("seg_labels", "box", "prev_box", "motion_box", "moving", "box_cloud")
 
 REF_SHIFT_M = 0.3
 REF_TURN_RAD = math.radians(5.0)
@@ -208,6 +211,10 @@ class MotionSamples(Dataset):
         labels = np.concatenate([points_in_box(previous, prev_box, LABEL_SCALE) & (m_p > 0),
                                  points_in_box(search, box, LABEL_SCALE) & (m_c > 0)])
         moving = float(np.linalg.norm(gt[:3] - prev_gt[:3]) > MOTION_THRESHOLD_M)
+        points = torch.from_numpy(np.stack([previous, search]))
+        boxes = torch.from_numpy(np.stack([_box4(prev_box), _box4(box)]))
+        sizes = torch.tensor(np.stack([prev_gt[3:6], gt[3:6]]), dtype=torch.float32)
+        distances = box_cloud(points, boxes, sizes).reshape(-1, 9)
         f32 = torch.float32
         return {
             "search": torch.from_numpy(search),
@@ -219,6 +226,7 @@ class MotionSamples(Dataset):
             "prev_box": torch.from_numpy(_box4(prev_box)),
             "motion_box": torch.as_tensor(offset_between(prev_gt, gt), dtype=f32),
             "moving": torch.tensor(moving),
+            "box_cloud": distances,
         }
 
 
