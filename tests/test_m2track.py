@@ -77,8 +77,13 @@ def test_registered_with_sizes_and_samples():
     count = lambda m: sum(p.numel() for p in m.parameters())  # noqa: E731
     assert count(slim) < count(full) / 3
     assert M2Track.sample_recipe == "motion"
-    with pytest.raises(ValueError, match="seg_channels"):
-        trackers.make("m2track", seg_channels=[8])
+    for bad in ([8], [8, 8]):
+        with pytest.raises(ValueError, match="seg_channels"):
+            trackers.make("m2track", seg_channels=bad)
+    with pytest.raises(ValueError, match="box_aware"):
+        trackers.make("m2track", loss_weights={"box_cloud": 2.0})
+    assert trackers.make("m2track", **TINY, box_aware=True,
+                         loss_weights={"box_cloud": 2.0}).config.loss_weights["box_cloud"] == 2.0
     with pytest.raises(ValueError, match="unknown loss term"):
         trackers.make("m2track", loss_weights={"vote": 1.0})
 

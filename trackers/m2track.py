@@ -99,9 +99,10 @@ class M2TrackConfig(TrackerConfig):
                 raise ValueError(f"{key} must be a non-empty list of positive widths, got "
                                  f"{getattr(self, key)!r}")
             setattr(self, key, value)
-        if len(self.seg_channels) < 2:
-            raise ValueError(f"seg_channels needs at least 2 layers (the second one's features "
-                             f"are concatenated with the pooled ones), got {self.seg_channels}")
+        if len(self.seg_channels) < 3:
+            raise ValueError(f"seg_channels needs at least 3 layers (the second one's features "
+                             f"are concatenated with the pooled last ones), got "
+                             f"{self.seg_channels}")
 
 
 class MiniPointNet(nn.Module):
@@ -298,6 +299,9 @@ class M2Track(Tracker):
         cfg = self.config
         bc = 9 if cfg.box_aware else 0
         if not cfg.box_aware:  # no BoxCloud regression: the term does not exist
+            given = (config or {}) if isinstance(config, dict) else {}
+            if "box_cloud" in {**given, **overrides}.get("loss_weights", {}):
+                raise ValueError("m2track config: loss weight 'box_cloud' needs box_aware=True")
             cfg.loss_weights = {k: v for k, v in cfg.loss_weights.items() if k != "box_cloud"}
         self.seg = SegPointNet(5 + bc, cfg.seg_channels, cfg.seg_head_channels, 2 + bc)
         self.motion_net = MiniPointNet(4 + bc, cfg.point_channels, cfg.hidden_channels)
