@@ -2,15 +2,19 @@
 farthest-point sampling / ball query against naive references.
 
     python benchmarks/bench_trackers.py [--quick] [--threads 2] [--device cpu|cuda]
-                                        [--env-steps 300]
+                                        [--env-steps 300] [--trackers p2b m2track]
+                                        [--model-size default|slim]
 
 Inputs are synthetic (``trackers.toy.toy_batch``: a box-shaped target on a ground plane, the
-contract's 512 / 1024 points). Forward times are eval mode under ``torch.inference_mode``;
-"act" adds observation validation and the numpy round trip. The machine's load average is
-printed because other processes share the CPU; "CPU" is this process's CPU time per call (all
-threads), which contention inflates far less than wall time. ``--env-steps N`` also times
-``act`` on N observations of the synthetic env (``preset="small"``, test split, KITTI-1 setting;
-the intended use: padded templates, sparse neighbourhoods), each tracker acting on its own.
+contract's 512 / 1024 points; M2-Track's previous frame is the search region shifted by 0.4 m).
+Untrained weights: M2-Track's eval cost depends on how many points its segmentation keeps
+(the mini PointNets pool only those), so a trained model's time differs. Forward times are
+eval mode under ``torch.inference_mode``; "act" adds observation validation and the numpy
+round trip. The machine's load average is printed because other processes share the CPU;
+"CPU" is this process's CPU time per call (all threads), which contention inflates far less
+than wall time. ``--env-steps N`` also times ``act`` on N observations of the synthetic env
+(``preset="small"``, test split, KITTI-1 setting; the intended use: padded templates, sparse
+neighbourhoods), each tracker acting on its own.
 
 Eval modes (``--eval-batch B``, default 8 as ``pointtrack eval --num-envs 8``): for each shipped
 ``-u`` checkpoint, milliseconds per frame of an eval forward of ``B`` observations (half of them
@@ -83,12 +87,46 @@ def naive_ball_query(radius: float, k: int, xyz: torch.Tensor, centres: torch.Te
     return out
 
 
+def motion_batch(batch_size: int, seed: int) -> tuple[dict, dict]:
+    """M2-Track's inputs and targets from a toy batch: the previous frame is the search region
+    with the target 0.4 m behind (the whole cloud shifted: a timing input, not a scene)."""
+    batch, targets = toy_batch(batch_size, seed=seed)
+    shift = torch.tensor([0.4, 0.0, 0.0])
+    box = targets["search_box"][:, [0, 1, 2, 6]]
+    inputs = {"search": batch["search"], "previous_search": batch["search"] - shift,
+              "size": batch["size"], "prior_is_gt": torch.ones(batch_size)}
+    labels = targets["search_labels"]
+    return inputs, {"seg_labels": torch.cat([labels, labels], dim=1), "box": box,
+                    "prev_box": box - torch.cat([shift, torch.zeros(1)]),
+                    "motion_box": torch.cat([shift, torch.zeros(1)]).expand(batch_size, 4),
+                    "moving": torch.ones(batch_size)}
+
+
+def tracker_inputs(model, batch_size: int, seed: int) -> tuple[dict, dict]:
+    """The forward inputs and loss targets of ``model`` (M2-Track reads two frames)."""
+    if "previous_search" in getattr(model, "observation_keys", ()):
+        return motion_batch(batch_size, seed)
+    return toy_batch(batch_size, seed=seed)
+
+
+def one_observation(model, seed: int) -> dict:
+    batch, _ = toy_batch(1, seed=seed)
+    obs = {k: v[0].numpy() for k, v in batch.items()}
+    if "previous_search" in getattr(model, "observation_keys", ()):
+        obs["previous_search"] = motion_batch(1, seed)[0]["previous_search"][0].numpy()
+    return obs
+
+
 def env_act_ms(model, steps: int) -> float:
     """Median wall milliseconds of ``model.act`` over ``steps`` synthetic-env observations
     (the tracker's own actions drive the episodes; env time excluded)."""
     from envs.tracking_env import make_synthetic_env
 
     env = make_synthetic_env(preset="small", split="test", setting="kitti-1")
+    if "previous_search" in getattr(model, "observation_keys", ()):
+        from training.motion_samples import PreviousSearch
+
+        env = PreviousSearch(env)
     obs, _ = env.reset(seed=0)
     times = []
     for _ in range(steps):
@@ -136,7 +174,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="fewer repetitions, batch 8 not 32")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt"])
+    parser.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt", "m2track"])
+    parser.add_argument("--model-size", default="default", help="default | slim")
     parser.add_argument("--eval-batch", type=int, default=8,
                         help="batch of the eval-mode comparison (0: skip it)")
     parser.add_argument("--env-steps", type=int, default=0,
@@ -153,20 +192,21 @@ def main(argv: list[str] | None = None) -> int:
     results = {}
     for name in args.trackers:
         torch.manual_seed(0)
-        model = trackers.make(name).to(device).eval()
+        model = trackers.make(name, **trackers.size_config(name, args.model_size))
+        model = model.to(device).eval()
         params = sum(p.numel() for p in model.parameters())
         row = {"params": params}
         for bsz in (1, big):
-            batch, _ = toy_batch(bsz, seed=1)
+            batch, _ = tracker_inputs(model, bsz, seed=1)
             batch = {k: v.to(device) for k, v in batch.items()}
             with torch.inference_mode():
                 dt = timeit(lambda b=batch, m=model: m(b), reps, sync=sync)
             row[f"ms_b{bsz}"] = dt * 1e3
             row[f"cpu_ms_b{bsz}"] = CPU_TIMES[-1] * 1e3
             row[f"fps_b{bsz}"] = bsz / dt
-        obs = {k: v[0].numpy() for k, v in toy_batch(1, seed=2)[0].items()}
+        obs = one_observation(model, seed=2)
         row["act_ms"] = timeit(lambda o=obs, m=model: m.act(o), reps) * 1e3
-        batch, targets = toy_batch(8, seed=3)
+        batch, targets = tracker_inputs(model, 8, seed=3)
         batch = {k: v.to(device) for k, v in batch.items()}
         targets = {k: v.to(device) for k, v in targets.items()}
         model.train()
@@ -182,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
             row["env_act_ms"] = env_act_ms(model, args.env_steps)
             env_note = f" | act on env obs {row['env_act_ms']:6.1f} ms"
         results[name] = row
-        print(f"{name:4s} params {params / 1e6:.2f} M | batch 1: {row['ms_b1']:7.1f} ms "
+        print(f"{name:7s} params {params / 1e6:.2f} M | batch 1: {row['ms_b1']:7.1f} ms "
               f"(CPU {row['cpu_ms_b1']:6.1f} ms, {row['fps_b1']:5.1f} frames/s) | "
               f"batch {big}: {row[f'ms_b{big}']:8.1f} ms "
               f"({row[f'fps_b{big}']:6.1f} frames/s) | act(1 obs) {row['act_ms']:6.1f} ms | "

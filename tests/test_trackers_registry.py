@@ -116,13 +116,13 @@ def test_registry_errors_name_the_valid_names(xcorr):
 
 
 def test_available_lists_kinds_in_order():
-    assert trackers.available("learned") == ["p2b", "bat", "gpt"]
+    assert trackers.available("learned") == ["p2b", "bat", "gpt", "m2track"]
     assert trackers.available("baseline") == ["previous_box", "constant_velocity"]
     shipped = trackers.available("checkpoint")
-    assert trackers.available() == ["p2b", "bat", "gpt", "previous_box", "constant_velocity",
-                                    *shipped]
+    assert trackers.available() == ["p2b", "bat", "gpt", "m2track", "previous_box",
+                                    "constant_velocity", *shipped]
     assert set(shipped) == {f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"}
-    for name in trackers.available("learned"):
+    for name in ("p2b", "bat", "gpt"):  # the matching trackers (m2track: tests/test_m2track.py)
         assert trackers.size_config(name, "default") == {}
         slim = trackers.make(name, **trackers.size_config(name, "slim"))
         assert slim.config.backbone.out_channels == 128

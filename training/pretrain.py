@@ -67,7 +67,7 @@ from training.checkpoint import (
 )
 from training.config import TrainConfig
 from training.sam import SAM
-from training.samples import split_batch
+from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
 
 __all__ = [
@@ -117,6 +117,7 @@ def default_model_factory(cfg: TrainConfig) -> torch.nn.Module:
 
 
 def default_train_data(cfg: TrainConfig):
+    import trackers
     from training.samples import TrackingSamples, load_tracklets
 
     tracklets, _, root = load_tracklets(
@@ -124,6 +125,16 @@ def default_train_data(cfg: TrainConfig):
         sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
         version=cfg.nuscenes_version,
     )
+    if getattr(trackers.tracker_class(cfg.tracker), "sample_recipe", None) == "motion":
+        from training.motion_samples import MotionSamples
+
+        if cfg.size_jitter > 0:
+            raise TrainingError(f"size_jitter={cfg.size_jitter}: the motion samples of "
+                                f"{cfg.tracker} have no object resizing; use 0")
+        data = MotionSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame,
+                             seed=cfg.seed)
+        data.root = str(root)
+        return data
     data = TrackingSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed,
                            size_jitter=cfg.size_jitter)
     data.root = str(root)  # logged: a synthetic world's folder name carries its generator hash
@@ -163,7 +174,12 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
         import gymnasium as gym
 
         def make_env():
-            return TrackingEnv(holder, setting=st, categories=st.observed, sampling="sequential")
+            env = TrackingEnv(holder, setting=st, categories=st.observed, sampling="sequential")
+            if "previous_search" in getattr(model, "observation_keys", ()):
+                from training.motion_samples import PreviousSearch
+
+                env = PreviousSearch(env)
+            return env
 
         env = gym.vector.SyncVectorEnv([make_env] * n_envs) if n_envs > 1 else make_env()
         try:
@@ -235,6 +251,9 @@ class Trainer:
 
             self.net = DistributedDataParallel(self.model, find_unused_parameters=True)
         self.data = train_data if train_data is not None else default_train_data(cfg)
+        # the batch / target keys of the sample recipe (the motion samples' differ)
+        self._sample_keys = (getattr(self.data, "batch_keys", BATCH_KEYS),
+                             getattr(self.data, "target_keys", TARGET_KEYS))
         if len(self.data) < cfg.batch_size:
             raise TrainingError(
                 f"only {len(self.data)} training samples, fewer than one batch of {cfg.batch_size}"
@@ -445,7 +464,7 @@ class Trainer:
                        dynamic_ncols=True)
         t0 = time.perf_counter()
         for sample in loader:
-            batch, targets, indices = split_batch(sample, self.device)
+            batch, targets, indices = split_batch(sample, self.device, *self._sample_keys)
             outputs = self.net(batch)
             losses = self.model.loss(outputs, targets)
             self._check_finite(losses, indices)

@@ -233,10 +233,12 @@ BATCH_KEYS = ("template", "search", "size", "motion")
 TARGET_KEYS = ("search_box", "search_labels", "template_centers", "template_labels")
 
 
-def split_batch(sample: dict[str, torch.Tensor], device: str | torch.device = "cpu"):
-    """A collated sample dict -> ``(batch, targets, indices)`` on ``device``."""
-    batch = {k: sample[k].to(device) for k in BATCH_KEYS}
-    targets = {k: sample[k].to(device) for k in TARGET_KEYS}
+def split_batch(sample: dict[str, torch.Tensor], device: str | torch.device = "cpu",
+                batch_keys: Sequence[str] = BATCH_KEYS, target_keys: Sequence[str] = TARGET_KEYS):
+    """A collated sample dict -> ``(batch, targets, indices)`` on ``device`` (the keys of the
+    sample recipe: these samples' by default)."""
+    batch = {k: sample[k].to(device) for k in batch_keys}
+    targets = {k: sample[k].to(device) for k in target_keys}
     return batch, targets, sample["index"]
 
 
