@@ -3,8 +3,8 @@
     OMP_NUM_THREADS=1 python benchmarks/bench_m2track.py [--steps 40] [--p2b p2b-kitti1-u]
                                                          [--m2track CHECKPOINT]
 
-Observations: the ``small`` world's test split (KITTI-1 setting), the previous frame added by
-``training.motion_samples.PreviousSearch``, the episodes driven by zero actions (the previous-box
+Observations: the ``small`` world's test split (KITTI-1 setting), the previous frame from the
+env's opt-in ``previous_search`` key, the episodes driven by zero actions (the previous-box
 baseline) so both trackers see the same observations. The figure is the median process CPU time
 per ``act`` call with one torch thread: on a shared machine it moves far less with the load than
 wall time. Without ``--m2track`` the M2-Track models are untrained (default and slim widths);
@@ -24,12 +24,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import trackers  # noqa: E402
-from envs.tracking_env import make_synthetic_env  # noqa: E402
-from training.motion_samples import PreviousSearch  # noqa: E402
+from envs.tracking_env import OBSERVATION_KEYS, make_synthetic_env  # noqa: E402
 
 
 def observations(steps: int) -> list[dict[str, np.ndarray]]:
-    env = PreviousSearch(make_synthetic_env(preset="small", split="test", setting="kitti-1"))
+    env = make_synthetic_env(preset="small", split="test", setting="kitti-1",
+                             observation_keys=(*OBSERVATION_KEYS, "previous_search"))
     obs, _ = env.reset(seed=0)
     out = []
     for _ in range(steps):

@@ -121,12 +121,10 @@ def env_act_ms(model, steps: int) -> float:
     """Median wall milliseconds of ``model.act`` over ``steps`` synthetic-env observations
     (the tracker's own actions drive the episodes; env time excluded)."""
     from envs.tracking_env import make_synthetic_env
+    from training.evaluate import observation_keys_for
 
-    env = make_synthetic_env(preset="small", split="test", setting="kitti-1")
-    if "previous_search" in getattr(model, "observation_keys", ()):
-        from training.motion_samples import PreviousSearch
-
-        env = PreviousSearch(env)
+    env = make_synthetic_env(preset="small", split="test", setting="kitti-1",
+                             observation_keys=observation_keys_for([model]))
     obs, _ = env.reset(seed=0)
     times = []
     for _ in range(steps):

@@ -22,7 +22,6 @@ from training.motion_samples import (
     BATCH_KEYS,
     TARGET_KEYS,
     MotionSamples,
-    PreviousSearch,
     augment_frame,
 )
 
@@ -129,20 +128,22 @@ def tiny_world():
     return ensure_world("tiny", "hdl64", 0)
 
 
-def test_previous_search_bridge_is_a_crop_of_the_previous_scan(tiny_world):
+def test_m2track_acts_on_the_env_previous_search_key(tiny_world):
+    """The env's opt-in key is what ``evaluate`` asks for on M2-Track's behalf, and M2-Track
+    acts on it (the key's own crop is tested against the previous scan in the env tests)."""
+    import trackers
     from envs.tracking_env import make_synthetic_env
+    from training.evaluate import observation_keys_for
 
-    env = PreviousSearch(make_synthetic_env(preset="tiny", seed=0, split="test"))
+    model = trackers.make("m2track", **trackers.size_config("m2track", "slim")).eval()
+    keys = observation_keys_for([model, trackers.make("previous_box")])
+    assert keys[-1] == "previous_search"
+    env = make_synthetic_env(preset="tiny", seed=0, split="test", observation_keys=keys)
     obs, _ = env.reset(seed=0)
-    assert env.observation_space.contains(obs)
-    base = env.unwrapped
     for _ in range(3):
-        ref, t, tr = base.reference_box, base.current_frame, base.current_tracklet
-        crop = crop_box_frame(tr.points(t - 1), ref, 1.25, 2.0)
-        assert len(crop) > 0
-        rows = {tuple(np.round(p, 4)) for p in crop}
-        assert all(tuple(np.round(p, 4)) in rows for p in obs["previous_search"])
-        obs, _, terminated, _, _ = env.step(np.zeros(4, np.float32))
+        action = model.act(obs)
+        assert env.action_space.contains(action)
+        obs, _, terminated, _, _ = env.step(action)
         if terminated:
             break
 

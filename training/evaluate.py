@@ -39,6 +39,7 @@ __all__ = [
     "format_table",
     "json_safe",
     "load_tracker",
+    "observation_keys_for",
     "plot_curves",
     "save_report",
     "split_tracklets",
@@ -82,6 +83,16 @@ def load_tracker(name_or_path: str, *, untrained: bool = False, seed: int = 0) -
             "best.pt), or pass --untrained to evaluate the random initialisation on purpose"
         )
     return tracker
+
+
+def observation_keys_for(trackers: Sequence[Any]) -> tuple[str, ...]:
+    """The env's ``observation_keys`` that serve every tracker in ``trackers``: the default
+    observation plus each tracker's opt-in keys (a tracker's ``observation_keys`` class
+    attribute, e.g. M2-Track's ``("previous_search",)``), in the env's order."""
+    from envs.tracking_env import OBSERVATION_KEYS, OPTIONAL_OBSERVATION_KEYS
+
+    wanted = {key for tracker in trackers for key in getattr(tracker, "observation_keys", ())}
+    return (*OBSERVATION_KEYS, *(k for k in OPTIONAL_OBSERVATION_KEYS if k in wanted))
 
 
 def tracker_name(tracker: Any, name: str | None = None) -> str:

@@ -37,9 +37,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
 
-import gymnasium as gym
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -49,8 +47,7 @@ from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE, SEARCH_SIZE, resampl
 from trackers.m2track import box_cloud
 from training.samples import crop_near
 
-__all__ = ["BATCH_KEYS", "TARGET_KEYS", "MotionSamples", "PreviousSearch", "augment_frame",
-           "previous_search_crop"]
+__all__ = ["BATCH_KEYS", "TARGET_KEYS", "MotionSamples", "augment_frame"]
 
 BATCH_KEYS = ("search", "previous_search", "size", "prior_is_gt")
 TARGET_KEYS = ("seg_labels", "box", "prev_box", "motion_box", "moving", "box_cloud")
@@ -228,53 +225,3 @@ class MotionSamples(Dataset):
             "moving": torch.tensor(moving),
             "box_cloud": distances,
         }
-
-
-def previous_search_crop(points: np.ndarray, reference_box: np.ndarray) -> np.ndarray:
-    """The previous frame's scan ``(N, 3+)`` cropped like the search region around the reference
-    box ``(7,)`` (scaled 1.25 plus 2 m), in its frame -> ``(M, 3+)`` float32."""
-    return crop_near(np.asarray(points), np.asarray(reference_box, dtype=np.float64),
-                     SEARCH_SCALE, SEARCH_OFFSET_M)
-
-
-class PreviousSearch(gym.Wrapper):
-    """Adds ``previous_search (1024, 3)`` to a :class:`envs.tracking_env.TrackingEnv`'s
-    observations through its public state (``current_tracklet``, ``current_frame``,
-    ``reference_box``): the previous frame's points cropped around the reference box like the
-    search region, resampled with a generator seeded by ``(seed, tracklet id)`` at every reset
-    (``seed``: the env's ``episode_seed``, else 0).
-
-    A stand-in until the env offers the key itself (``TrackingEnv(...,
-    observation_keys=(..., "previous_search"))``): it reads the dataset's raw scans, so an
-    env's ``scan_transform`` (weather) does not reach the previous frame through it.
-    """
-
-    def __init__(self, env: gym.Env) -> None:
-        super().__init__(env)
-        spaces = dict(env.observation_space.spaces)
-        spaces["previous_search"] = spaces["search"]
-        self.observation_space = gym.spaces.Dict(spaces)
-        self._rng = np.random.default_rng(0)
-        self._last = np.zeros((SEARCH_SIZE, 3), np.float32)
-
-    def _add(self, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        base = self.env.unwrapped
-        t = base.current_frame
-        crop = previous_search_crop(base.current_tracklet.points(t - 1), base.reference_box)
-        out = np.empty((SEARCH_SIZE, 3), np.float32)
-        resample_into([crop[:, :3]], [out], self._rng)
-        self._last = out.copy()  # repeated with the env's repeated terminal observation
-        return {**obs, "previous_search": out}
-
-    def reset(self, **kwargs: Any) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
-        obs, info = self.env.reset(**kwargs)
-        base = self.env.unwrapped
-        seed = base.episode_seed if base.episode_seed is not None else 0
-        self._rng = np.random.default_rng([seed, *base.current_tracklet.tracklet_id.encode()])
-        return self._add(obs), info
-
-    def step(self, action: Any):
-        obs, reward, terminated, truncated, info = self.env.step(action)
-        if terminated:  # the env repeats the last observation: so does the previous frame
-            return {**obs, "previous_search": self._last}, reward, terminated, truncated, info
-        return self._add(obs), reward, terminated, truncated, info

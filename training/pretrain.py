@@ -153,7 +153,7 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
     """OPE on the val split, observed categories only, via ``training.evaluate.evaluate``."""
     from envs.data import class_specific, get_setting
     from envs.tracking_env import TrackingEnv
-    from training.evaluate import evaluate
+    from training.evaluate import evaluate, observation_keys_for
     from training.samples import load_tracklets
 
     st = class_specific(cfg.category) if cfg.category else get_setting(cfg.setting)
@@ -174,12 +174,8 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
         import gymnasium as gym
 
         def make_env():
-            env = TrackingEnv(holder, setting=st, categories=st.observed, sampling="sequential")
-            if "previous_search" in getattr(model, "observation_keys", ()):
-                from training.motion_samples import PreviousSearch
-
-                env = PreviousSearch(env)
-            return env
+            return TrackingEnv(holder, setting=st, categories=st.observed, sampling="sequential",
+                               observation_keys=observation_keys_for([model]))
 
         env = gym.vector.SyncVectorEnv([make_env] * n_envs) if n_envs > 1 else make_env()
         try:

@@ -155,7 +155,13 @@ def build_vector_env(args: argparse.Namespace, num_envs: int, **overrides: Any):
 
 
 def run(args: argparse.Namespace) -> int:
-    from training.evaluate import evaluate, format_table, plot_curves, save_report
+    from training.evaluate import (
+        evaluate,
+        format_table,
+        observation_keys_for,
+        plot_curves,
+        save_report,
+    )
 
     check_args(args)
     if getattr(args, "weather", None):
@@ -163,7 +169,9 @@ def run(args: argparse.Namespace) -> int:
     # every tracker before any data or evaluation, so a typo in the last one fails in a second
     loaded = load_trackers(args)
     check_out(args)
-    env = build_env(args) if args.num_envs == 1 else build_vector_env(args, args.num_envs)
+    keys = observation_keys_for(list(loaded.values()))  # e.g. M2-Track's previous frame
+    env = (build_env(args, observation_keys=keys) if args.num_envs == 1
+           else build_vector_env(args, args.num_envs, observation_keys=keys))
     reports = {}
     for name, tracker in loaded.items():
         n = env.unwrapped.num_tracklets if args.num_envs == 1 else env.get_attr("num_tracklets")[0]
@@ -234,11 +242,12 @@ def _run_weather(args: argparse.Namespace) -> int:
     JSON, table and plots per tracker under ``<out>/weather_<tracker>/``."""
     from pathlib import Path
 
+    from training.evaluate import observation_keys_for
     from training.robustness import run_weather_eval
 
     loaded = load_trackers(args)
     check_out(args)
-    base = build_env(args)
+    base = build_env(args, observation_keys=observation_keys_for(list(loaded.values())))
     n = base.num_tracklets
     subset = None if args.max_tracklets is None else list(range(min(args.max_tracklets, n)))
     for name, tracker in loaded.items():
