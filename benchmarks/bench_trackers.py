@@ -11,6 +11,13 @@ printed because other processes share the CPU; "CPU" is this process's CPU time 
 threads), which contention inflates far less than wall time. ``--env-steps N`` also times
 ``act`` on N observations of the synthetic env (``preset="small"``, test split, KITTI-1 setting;
 the intended use: padded templates, sparse neighbourhoods), each tracker acting on its own.
+
+Eval modes (``--eval-batch B``, default 8 as ``pointtrack eval --num-envs 8``): for each shipped
+``-u`` checkpoint, milliseconds per frame of an eval forward of ``B`` observations (half of them
+env-like padded clouds) as shipped (fast path, batch-invariant: one sample at a time), batched
+(``batch_invariant = False``: one forward of ``B``, the behaviour before batch invariance) and on
+the plain path (``fast_eval = False``, batch-invariant): the cost of batch invariance and the
+gain of the fast path.
 """
 
 from __future__ import annotations
@@ -95,12 +102,43 @@ def env_act_ms(model, steps: int) -> float:
     return times[len(times) // 2] * 1e3
 
 
+def padded(batch: dict[str, torch.Tensor], seed: int) -> dict[str, torch.Tensor]:
+    """Every other row an env-like sparse cloud: 40 / 150 distinct points padded by copies."""
+    g = torch.Generator().manual_seed(seed)
+    out = {k: v.clone() for k, v in batch.items()}
+    for row in range(0, out["template"].shape[0], 2):
+        for key, distinct in (("template", 40), ("search", 150)):
+            n = out[key].shape[1]
+            out[key][row] = out[key][row, torch.randint(0, distinct, (n,), generator=g)]
+    return out
+
+
+def eval_modes(bsz: int, reps: int, device: torch.device, sync) -> None:
+    """Milliseconds per frame of eval forwards: shipped, batched (not batch-invariant), plain."""
+    batch = {k: v.to(device) for k, v in padded(toy_batch(bsz, seed=4)[0], seed=5).items()}
+    for name in ("p2b-kitti1-u", "bat-kitti1-u", "gpt-kitti1-u"):
+        model = trackers.load(name, map_location=device)
+        row = {}
+        for mode, invariant, fast in (("shipped", True, True), ("batched", False, True),
+                                      ("plain", True, False)):
+            model.batch_invariant, model.fast_eval = invariant, fast
+            with torch.inference_mode():
+                row[mode] = timeit(lambda m=model: m(batch), reps, sync=sync) * 1e3 / bsz
+        model.batch_invariant, model.fast_eval = True, True
+        print(f"{name} eval, batch {bsz}, ms/frame: per-sample (shipped) {row['shipped']:.1f} | "
+              f"batched {row['batched']:.1f} (batch invariance costs "
+              f"{100 * (row['shipped'] / row['batched'] - 1):+.0f} %) | plain path "
+              f"{row['plain']:.1f} ({row['plain'] / row['shipped']:.1f}x the fast path)")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repetitions, batch 8 not 32")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt"])
+    parser.add_argument("--eval-batch", type=int, default=8,
+                        help="batch of the eval-mode comparison (0: skip it)")
     parser.add_argument("--env-steps", type=int, default=0,
                         help="also time act() on this many synthetic-env observations")
     args = parser.parse_args(argv)
@@ -153,6 +191,9 @@ def main(argv: list[str] | None = None) -> int:
         base = results["p2b"]["fps_b1"]
         print("frames/s at batch 1 relative to P2B: "
               + ", ".join(f"{n} {r['fps_b1'] / base:.2f}x" for n, r in results.items()))
+
+    if args.eval_batch > 0:
+        eval_modes(args.eval_batch, reps, device, sync)
 
     g = torch.Generator().manual_seed(0)
     xyz = torch.rand(8, 1024, 3, generator=g) * torch.tensor([9.0, 6.0, 3.0])

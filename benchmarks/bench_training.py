@@ -7,7 +7,7 @@ Prints, for each tracker and weighting mode (-U plain, -W decorrelation, -S SAM)
 of full training steps (sample construction from the env's toy dataset + forward + loss +
 backward + optimizer step, the trainer's own code path) measured after one warm-up step, and
 the sample-construction rate of :class:`training.samples.TrackingSamples` alone. ``slim`` is the
-reduced-width configuration the shipped checkpoints use (``training.config.SLIM``); ``default``
+reduced-width configuration the shipped checkpoints use (the trackers' ``sizes["slim"]``); ``default``
 the papers' widths.
 """
 

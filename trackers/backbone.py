@@ -12,16 +12,21 @@ points of that order - P2B's "random sampling" (which takes a prefix of a random
 cloud), with the order made explicit. ``sampling="fps"`` (Open3DSOT's BAT option) instead puts
 the first layer's farthest-point sample (started at the first point of ``order``) in front.
 
-Speed: the first Linear of each SA MLP acts on ``[p_j - c_i; f_j]``, which is linear, so it is
-computed once per point (``W_x p_j + W_f f_j + b``) and once per centre (``W_x c_i``) and the
-grouped pre-activation is ``gather - centre`` - the same function with ``k x`` fewer
-multiplications. In eval mode groups are evaluated ragged: the padding slots of a ball query repeat
-the first hit, whose features cannot change a max, so only the real hits go through the MLP (same
-result; training keeps the dense layout so BatchNorm statistics match the reference, unless
-``ragged_train=True``). Padded clouds (the env repeats the points of small clouds) are evaluated
-once per distinct point in eval: copies of a centre share its features, copies of a neighbour
-its MLP value (:meth:`SetAbstraction.ragged`). In eval the template and the search region go
-through each layer together (:meth:`Backbone.forward_many`): one MLP evaluation per layer.
+The first Linear of each SA MLP acts on ``[p_j - c_i; f_j]``, which is linear, so it is computed
+once per point (``W_x p_j + W_f f_j + b``) and once per centre (``W_x c_i``) and the grouped
+pre-activation is ``gather - centre`` - the same function with ``k x`` fewer multiplications
+(every path, training included).
+
+Plain path (training, and eval with ``fast_eval=False``): dense ``(B, n, k)`` ball-query groups,
+one cloud at a time. Fast eval path (``fast_eval=True``, the default; the same function up to
+float rounding): groups are evaluated ragged - the padding slots of a ball query repeat the first
+hit, whose features cannot change a max, so only the real hits go through the MLP; padded clouds
+(the env repeats the points of small clouds) are evaluated once per distinct point - copies of a
+centre share its features, copies of a neighbour its MLP value (:meth:`SetAbstraction.ragged`);
+the template and the search region go through each layer together
+(:meth:`Backbone.forward_many`): one MLP evaluation per layer. ``ragged_train=True`` uses the
+ragged groups in training too (BatchNorm statistics over the real hits only: a different,
+cheaper training computation, not an exact speed-up).
 """
 
 from __future__ import annotations
@@ -45,7 +50,6 @@ class BackboneConfig:
     neighbours: int = 32
     channels: tuple[tuple[int, ...], ...] = ((64, 64, 128), (128, 128, 256), (256, 256, 256))
     out_channels: int = 256
-    ragged_eval: bool = True
     # ragged in training too: BatchNorm statistics over the real hits only (the reference counts
     # the padding copies); several times less backbone work, so CPU training is ~2x faster
     ragged_train: bool = False
@@ -71,11 +75,11 @@ class SetAbstraction(nn.Module):
     """
 
     def __init__(self, in_channels: int, channels: tuple[int, ...], radius: float, k: int,
-                 ragged_eval: bool = True, ragged_train: bool = False) -> None:
+                 ragged_train: bool = False) -> None:
         super().__init__()
         self.radius, self.k = radius, k
-        self.ragged_eval, self.ragged_train = ragged_eval, ragged_train
-        self.in_channels = in_channels
+        self.ragged_train = ragged_train
+        self.fast_eval = True  # eval: ragged groups (see the module doc)
         self.mlp = MLP([in_channels + 3, *channels])
 
     def point_terms(self, xyz: torch.Tensor, feats: torch.Tensor | None,
@@ -92,7 +96,7 @@ class SetAbstraction(nn.Module):
                 first: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``first (B, N)``: :func:`trackers.ops.first_copy` of ``xyz`` (ragged path only), to
         evaluate each distinct centre and neighbour once."""
-        if self.ragged_train if self.training else self.ragged_eval:
+        if self.ragged_train if self.training else self.fast_eval:
             return self.ragged([xyz], [feats], [n], [first])[0]
         centres = xyz[:, :n]
         per_point, per_centre = self.point_terms(xyz, feats, centres)
@@ -153,11 +157,11 @@ class Backbone(nn.Module):
         layers, c_in = [], 0
         for radius, chans in zip(config.radii, config.channels, strict=True):
             layers.append(
-                SetAbstraction(c_in, chans, radius, config.neighbours, config.ragged_eval,
-                               config.ragged_train))
+                SetAbstraction(c_in, chans, radius, config.neighbours, config.ragged_train))
             c_in = chans[-1]
         self.layers = nn.ModuleList(layers)
         self.out = nn.Linear(c_in, config.out_channels)
+        self.fast_eval = True  # eval: all clouds through each layer together, ragged groups
 
     @property
     def out_channels(self) -> int:
@@ -170,10 +174,11 @@ class Backbone(nn.Module):
     def forward_many(self, clouds: list[torch.Tensor], orders: list[torch.Tensor]
                      ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         """:meth:`forward` of several clouds ``(B, N_i, 3)`` (same ``B``): one evaluation for all
-        of them on the ragged path in eval mode (fewer, larger operations: the template and the
-        search region at batch 1), one call each otherwise (training keeps the BatchNorm
-        statistics of each cloud apart)."""
-        ragged = not self.training and all(layer.ragged_eval for layer in self.layers)
+        of them on the fast eval path (fewer, larger operations: the template and the search
+        region at batch 1), one call each otherwise (training keeps the BatchNorm statistics of
+        each cloud apart)."""
+        ragged = not self.training and self.fast_eval and all(layer.fast_eval
+                                                              for layer in self.layers)
         if not ragged and len(clouds) > 1:
             return [self.forward_many([p], [o])[0] for p, o in zip(clouds, orders, strict=True)]
         ordered = [self._ordered(p, o) for p, o in zip(clouds, orders, strict=True)]

@@ -1,25 +1,42 @@
-"""The common learned-tracker module: backbone -> fusion (per tracker) -> shared proposal head.
+"""Tracker base classes: :class:`Tracker` (any learned tracker) and :class:`MatchingTracker`
+(backbone -> fusion -> voting head: P2B, BAT, GPT).
 
-Contract (INTERFACES.md "trackers"):
+:class:`Tracker` contract (what ``make`` / ``save`` / ``load``, the trainer and the env rely on):
 
+* a config dataclass ``config_class`` (a subclass of :class:`TrackerConfig`) built from keywords,
+  JSON-serialisable (``trackers.config.config_to_dict``): ``save`` writes it next to the
+  ``state_dict``, ``load`` rebuilds the tracker from it and loads the weights strictly;
+* ``sizes``: named config presets (``"default"``: the papers' widths; ``"slim"``: reduced widths
+  for CPU training), the ``--model-size`` choices of ``pointtrack train``;
 * ``forward(batch, generator=None) -> dict``: ``batch`` holds ``template (B, 512, 3)``,
   ``search (B, 1024, 3)``, ``size (B, 3)``, ``motion (B, 4)`` float tensors (template points in
-  their own box frame, search points in the reference-box frame). Outputs: ``Z (B, M_S, D)`` the
-  fused search features, ``proposals (B, P, 4)`` = ``(dx, dy, dz, dyaw)`` in the search frame
-  (radians), ``scores (B, P)`` objectness logits, ``votes (B, M_S, 3)``, ``seed_logits
-  (B, M_S)``, ``seed_xyz``, ``seed_idx (B, M_S)`` (indices into ``search``),
-  ``template_seed_xyz``, ``template_seed_idx (B, M_T)``, ``proposal_centers``, ``box_raw``, plus
-  tracker extras.
-* ``loss(outputs, targets) -> dict`` of per-sample ``(B,)`` terms and ``total`` (weighted sum).
-* ``act(obs) -> np.ndarray``: one observation -> ``(4,)``, a batch -> ``(B, 4)``; the best-scored
-  proposal, clipped to ``self.max_action`` (default the env's ``a_max = (5, 5, 3, pi)``); no move
-  for an all-zero (empty) template or search; one eval-mode ``no_grad`` forward per call (the
-  module's train/eval mode is restored afterwards).
+  their own box frame, search points in the reference-box frame); outputs at least
+  ``proposals (B, P, 4)`` = ``(dx, dy, dz, dyaw)`` in the search frame (metres, radians) and
+  ``scores (B, P)`` (logits, higher is better), every output with leading dimension ``B``;
+  subclasses implement :meth:`Tracker.forward_batch`, and in eval mode ``forward`` runs it one
+  sample at a time (:attr:`Tracker.batch_invariant`);
+* ``loss(outputs, targets) -> dict`` of per-sample ``(B,)`` terms and ``total`` (weighted sum);
+* :meth:`Tracker.features`: the ``(B, M, D)`` features the decorrelation weighting (-W) pools;
+* ``act(obs) -> np.ndarray``: one observation -> ``(4,)``, a batch -> ``(B, 4)`` (``(0, 4)`` for
+  an empty batch); the best-scored proposal, clipped to ``self.max_action`` (default the env's
+  ``a_max = (5, 5, 3, pi)``); no move for an all-zero (empty) template or search; eval-mode
+  ``no_grad`` forwards (the module's train/eval mode is restored afterwards).
+
+:class:`MatchingTracker` outputs ``Z (B, M_S, D)`` the fused search features, ``proposals``,
+``scores``, ``votes (B, M_S, 3)``, ``vote_features``, ``seed_logits (B, M_S)``, ``seed_xyz``,
+``seed_idx (B, M_S)`` (indices into ``search``), ``template_seed_xyz``, ``template_seed_idx
+(B, M_T)``, ``proposal_centers``, ``box_raw``, plus tracker extras. Subclasses implement
+``build_fusion(in_channels) -> (module, out_channels)`` and ``fuse`` (and optionally
+``extra_losses``).
 
 Sampling: in training mode the backbone keeps a random prefix of each cloud (a permutation from
 ``generator``, default the module's own ``self.generator`` seeded by ``config.sampling_seed``); in
 eval mode a :func:`trackers.ops.hash_order` keyed by ``config.sampling_seed`` - deterministic, and
 the outputs do not depend on the order of the input points.
+
+Eval paths: ``tracker.fast_eval`` (default ``True``) selects the exact speed-ups (folded
+BatchNorm, ragged groups, P2B's knot interpolation) over the plain path (the training
+computation with BatchNorm running statistics); both are the same function to float rounding.
 """
 
 from __future__ import annotations
@@ -37,8 +54,10 @@ from trackers import ops
 from trackers.backbone import Backbone, BackboneConfig
 from trackers.config import config_from_dict, config_to_dict
 from trackers.head import HeadConfig, VotingHead, head_losses
+from trackers.layers import set_fast_eval
 
-__all__ = ["DEFAULT_MAX_ACTION", "OBS_SHAPES", "Tracker", "TrackerConfig", "prepare_observation"]
+__all__ = ["DEFAULT_MAX_ACTION", "OBS_SHAPES", "SLIM_BACKBONE", "MatchingConfig",
+           "MatchingTracker", "Tracker", "TrackerConfig", "prepare_observation"]
 
 #: The env's default action bound ``a_max`` (metres, metres, metres, radians).
 DEFAULT_MAX_ACTION = (5.0, 5.0, 3.0, math.pi)
@@ -51,18 +70,31 @@ OBS_SHAPES: dict[str, tuple[int, ...]] = {
     "motion": (4,),
 }
 
+#: The slim backbone of the shipped checkpoints (the ``"slim"`` size of P2B, BAT and GPT): about
+#: 6x cheaper per training step than the papers' widths, same architecture and inputs; ragged
+#: training (BatchNorm statistics over real ball-query hits only) saves another ~30 % on CPU.
+SLIM_BACKBONE: dict[str, Any] = {"channels": [[32, 32, 64], [64, 64, 128], [128, 128, 128]],
+                                 "out_channels": 128, "neighbours": 16, "ragged_train": True}
+
 
 @dataclass
 class TrackerConfig:
-    """Hyper-parameters common to P2B, BAT and GPT."""
+    """Hyper-parameters every learned tracker has: the eval sampling seed and loss weights
+    (terms not given keep the tracker's ``default_loss_weights``)."""
 
-    backbone: BackboneConfig = field(default_factory=BackboneConfig)
-    head: HeadConfig = field(default_factory=HeadConfig)
     sampling_seed: int = 0
     loss_weights: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.loss_weights = {str(k): float(v) for k, v in self.loss_weights.items()}
+
+
+@dataclass
+class MatchingConfig(TrackerConfig):
+    """Hyper-parameters of a matching tracker's backbone and voting head."""
+
+    backbone: BackboneConfig = field(default_factory=BackboneConfig)
+    head: HeadConfig = field(default_factory=HeadConfig)
 
 
 def prepare_observation(obs: Any, device: torch.device | str = "cpu"
@@ -123,13 +155,18 @@ def _expected() -> str:
 
 
 class Tracker(nn.Module):
-    """Base of the learned trackers; subclasses set ``name``, ``config_class``, build
-    ``self.fusion`` in ``build_fusion`` and implement ``fuse`` (and optionally ``extra_losses``).
+    """Base of the learned trackers (see the module doc for the contract).
+
+    Subclasses set ``config_class``, ``default_loss_weights`` and ``sizes``, implement
+    :meth:`forward_batch` and :meth:`loss`, and register with :func:`trackers.register`, which
+    sets ``name``.
     """
 
     name: ClassVar[str] = "tracker"
     config_class: ClassVar[type] = TrackerConfig
     default_loss_weights: ClassVar[dict[str, float]] = {}
+    #: config presets by model size: keyword overrides of the config defaults
+    sizes: ClassVar[dict[str, dict[str, Any]]] = {"default": {}}
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__()
@@ -146,78 +183,72 @@ class Tracker(nn.Module):
         # given weights override the paper's; terms not given keep the paper's weight
         cfg.loss_weights = {**self.default_loss_weights, **cfg.loss_weights}
         self.config = cfg
-        self.backbone = Backbone(cfg.backbone)
-        self.build_fusion()
-        self.head = VotingHead(self.fused_channels, cfg.head)
         self.generator = torch.Generator().manual_seed(int(cfg.sampling_seed))
         self.max_action = np.asarray(DEFAULT_MAX_ACTION, dtype=np.float32)
+        #: eval forwards one sample at a time, so a sample's outputs do not depend on what else
+        #: is in its batch (batched kernels differ in the last bit with the batch size, and the
+        #: closed tracking loop amplifies that); ``False``: one batched eval forward (faster,
+        #: especially on a GPU, but not batch-invariant). Training is always batched.
+        self.batch_invariant = True
+        self._fast_eval = True
 
-    # ------------------------------------------------------------------ hooks for subclasses
-    fused_channels: int = 256
+    @property
+    def fast_eval(self) -> bool:
+        """Eval on the fast path (the default) or on the plain path (``False``): the one switch
+        for every submodule's exact speed-ups; training is unaffected."""
+        return self._fast_eval
 
-    def build_fusion(self) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @fast_eval.setter
+    def fast_eval(self, enabled: bool) -> None:
+        self._fast_eval = bool(enabled)
+        for sub in self.children():
+            set_fast_eval(sub, enabled)
 
-    def fuse(self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_xyz: torch.Tensor,
-             s_feat: torch.Tensor, batch: dict[str, torch.Tensor]
-             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # pragma: no cover - abstract
-        """-> ``Z (B, M_S, D)`` and extra outputs."""
-        raise NotImplementedError
-
-    def extra_losses(self, outputs: dict[str, torch.Tensor], targets: dict[str, torch.Tensor],
-                     seed_labels: torch.Tensor) -> dict[str, torch.Tensor]:
-        return {}
-
-    # ------------------------------------------------------------------ common machinery
     @property
     def device(self) -> torch.device:
         return next(self.parameters()).device
 
-    def sampling_orders(self, template: torch.Tensor, search: torch.Tensor,
-                        generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Point orders for the backbone: random in training, hash-based in eval."""
-        if self.training:
-            gen = generator if generator is not None else self.generator
-            return (ops.random_order(template.shape[0], template.shape[1], gen, template.device),
-                    ops.random_order(search.shape[0], search.shape[1], gen, search.device))
-        seed = int(self.config.sampling_seed)
-        order_t, order_s = ops.hash_orders([template, search], [seed, seed + 1])
-        return order_t, order_s
-
     def forward(self, batch: Mapping[str, torch.Tensor],
                 generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """:meth:`forward_batch`, one sample at a time in eval mode (:attr:`batch_invariant`)."""
         for key in ("template", "search"):
             value = batch[key]
             if value.dim() != 3 or value.shape[-1] != 3:
                 raise ValueError(f"batch[{key!r}] has shape {tuple(value.shape)}; expected "
                                  f"(B, {OBS_SHAPES[key][0]}, 3)")
-        template, search = batch["template"], batch["search"]
-        order_t, order_s = self.sampling_orders(template, search, generator)
-        (t_xyz, t_feat, t_idx), (s_xyz, s_feat, s_idx) = self.backbone.forward_many(
-            [template, search], [order_t, order_s])
-        z, extra = self.fuse(t_xyz, t_feat, s_xyz, s_feat, dict(batch))
-        out = self.head(s_xyz, z)
-        out.update(Z=z, seed_xyz=s_xyz, seed_idx=s_idx, template_seed_xyz=t_xyz,
-                   template_seed_idx=t_idx, **extra)
-        return out
+        b = batch["template"].shape[0]
+        if self.training or not self.batch_invariant or b <= 1:
+            return self.forward_batch(batch, generator)
+        parts = [self.forward_batch({k: v[i:i + 1] if _batched(v, b) else v
+                                     for k, v in batch.items()}, generator) for i in range(b)]
+        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
+
+    def forward_batch(self, batch: Mapping[str, torch.Tensor],
+                      generator: torch.Generator | None = None
+                      ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
+        """The batched forward (see the module doc for inputs and outputs)."""
+        raise NotImplementedError
 
     def loss(self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
-             ) -> dict[str, torch.Tensor]:
+             ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
         """Per-sample losses ``(B,)``: the named terms and their weighted ``total``."""
-        if "search_box" not in targets or "search_labels" not in targets:
-            raise KeyError("targets need 'search_box' (B, 7) and 'search_labels' (B, N_S)")
-        seed_labels = torch.gather(targets["search_labels"].float(), 1, outputs["seed_idx"])
-        terms = head_losses(outputs, targets["search_box"].float(), seed_labels,
-                            self.config.head)
-        terms.update(self.extra_losses(outputs, dict(targets), seed_labels))
-        weights = self.config.loss_weights
-        total = sum(weights[k] * terms[k] for k in weights)
-        return {"total": total, **terms}
+        raise NotImplementedError
+
+    def features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The per-sample features ``(B, M, D)`` or ``(B, D)`` that the decorrelation weighting
+        (-W, :mod:`training.weighting`) decorrelates; by default the fused features ``Z``."""
+        if "Z" not in outputs:
+            raise KeyError(f"{self.name}: outputs have no 'Z'; override Tracker.features to "
+                           f"say which output the sample weighting decorrelates")
+        return outputs["Z"]
 
     @torch.no_grad()
     def act(self, obs: Any) -> np.ndarray:
-        """Best proposal as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``."""
+        """Best proposal as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``
+        (an empty batch -> an empty ``(0, 4)`` array)."""
         batch, single = prepare_observation(obs, self.device)
+        if batch["template"].shape[0] == 0:
+            return np.zeros((0, 4), dtype=np.float32)
         was_training = self.training
         self.eval()
         try:
@@ -237,3 +268,77 @@ class Tracker(nn.Module):
 
     def extra_repr(self) -> str:
         return f"name={self.name!r}"
+
+
+def _batched(value: Any, b: int) -> bool:
+    return isinstance(value, torch.Tensor) and value.dim() > 0 and value.shape[0] == b
+
+
+class MatchingTracker(Tracker):
+    """Backbone -> fusion -> voting head (P2B, BAT, GPT differ only in the fusion).
+
+    Subclasses implement :meth:`build_fusion` and :meth:`fuse` (and optionally
+    :meth:`extra_losses`); the backbone and head come from ``config.backbone`` / ``config.head``.
+    """
+
+    config_class: ClassVar[type] = MatchingConfig
+
+    def __init__(self, config: Any = None, **overrides: Any) -> None:
+        super().__init__(config, **overrides)
+        self.backbone = Backbone(self.config.backbone)
+        self.fusion, fused_channels = self.build_fusion(self.backbone.out_channels)
+        self.head = VotingHead(fused_channels, self.config.head)
+
+    def build_fusion(self, in_channels: int
+                     ) -> tuple[nn.Module, int]:  # pragma: no cover - abstract
+        """The fusion module for backbone features of ``in_channels`` and its output channels."""
+        raise NotImplementedError
+
+    def fuse(self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_xyz: torch.Tensor,
+             s_feat: torch.Tensor, batch: dict[str, torch.Tensor]
+             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # pragma: no cover - abstract
+        """Seeds ``(B, M_T, 3)``, ``(B, M_T, D)``, ``(B, M_S, 3)``, ``(B, M_S, D)`` -> ``Z (B,
+        M_S, D')`` and extra outputs (each with leading dimension ``B``)."""
+        raise NotImplementedError
+
+    def extra_losses(self, outputs: dict[str, torch.Tensor], targets: dict[str, torch.Tensor],
+                     seed_labels: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Tracker-specific per-sample loss terms ``(B,)`` (none by default)."""
+        return {}
+
+    def sampling_orders(self, template: torch.Tensor, search: torch.Tensor,
+                        generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Point orders for the backbone: random in training, hash-based in eval."""
+        if self.training:
+            gen = generator if generator is not None else self.generator
+            return (ops.random_order(template.shape[0], template.shape[1], gen, template.device),
+                    ops.random_order(search.shape[0], search.shape[1], gen, search.device))
+        seed = int(self.config.sampling_seed)
+        order_t, order_s = ops.hash_orders([template, search], [seed, seed + 1])
+        return order_t, order_s
+
+    def forward_batch(self, batch: Mapping[str, torch.Tensor],
+                      generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        template, search = batch["template"], batch["search"]
+        order_t, order_s = self.sampling_orders(template, search, generator)
+        (t_xyz, t_feat, t_idx), (s_xyz, s_feat, s_idx) = self.backbone.forward_many(
+            [template, search], [order_t, order_s])
+        z, extra = self.fuse(t_xyz, t_feat, s_xyz, s_feat, dict(batch))
+        out = self.head(s_xyz, z)
+        out.update(Z=z, seed_xyz=s_xyz, seed_idx=s_idx, template_seed_xyz=t_xyz,
+                   template_seed_idx=t_idx, **extra)
+        return out
+
+    def loss(self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
+             ) -> dict[str, torch.Tensor]:
+        """Per-sample losses ``(B,)``: the head's terms, :meth:`extra_losses` and their
+        weighted ``total``."""
+        if "search_box" not in targets or "search_labels" not in targets:
+            raise KeyError("targets need 'search_box' (B, 7) and 'search_labels' (B, N_S)")
+        seed_labels = torch.gather(targets["search_labels"].float(), 1, outputs["seed_idx"])
+        terms = head_losses(outputs, targets["search_box"].float(), seed_labels,
+                            self.config.head)
+        terms.update(self.extra_losses(outputs, dict(targets), seed_labels))
+        weights = self.config.loss_weights
+        total = sum(weights[k] * terms[k] for k in weights)
+        return {"total": total, **terms}

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from trackers.registry import register
+
 __all__ = ["BASELINES", "ConstantVelocity", "PreviousBox"]
 
 
@@ -31,10 +33,9 @@ def _motion(obs: Mapping[str, Any]) -> np.ndarray:
     return motion
 
 
+@register("previous_box")
 class PreviousBox:
     """Keep the previous box: the zero offset (with ``reference="prediction"`` the box stays)."""
-
-    name = "previous_box"
 
     def act(self, obs: Mapping[str, Any]) -> np.ndarray:
         """``obs`` single or batched -> zeros ``(4,)`` or ``(B, 4)`` float32."""
@@ -44,6 +45,7 @@ class PreviousBox:
         return "PreviousBox()"
 
 
+@register("constant_velocity")
 class ConstantVelocity:
     """Repeat the last predicted motion ``obs["motion"]``.
 
@@ -56,8 +58,6 @@ class ConstantVelocity:
     of the first-frame template half; ``dz = dyaw = 0``; zero when either set has fewer than
     ``min_points`` distinct points or the shift exceeds half the box length.
     """
-
-    name = "constant_velocity"
 
     def __init__(
         self, init: str = "zero", ground_m: float = 0.3, iterations: int = 2, min_points: int = 20

@@ -1,4 +1,5 @@
-"""BAT (Zheng et al., ICCV 2021): Box-Cloud + box-aware feature fusion (BAFF) + the shared head.
+"""BAT (Zheng et al., "Box-Aware Feature Enhancement for Single Object Tracking on Point
+Clouds", ICCV 2021): Box-Cloud + box-aware feature fusion (BAFF) + the shared head.
 
 * Box-Cloud (BC) of a point: its distances to the box centre and the 8 corners (9 values).
   Template seeds: computed from their box, which in our template frame is the canonical box
@@ -17,6 +18,7 @@ gathered.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
@@ -24,9 +26,10 @@ from torch import nn
 
 from envs.geometry import box_corners_torch
 from trackers import ops
-from trackers.base import Tracker, TrackerConfig
+from trackers.base import SLIM_BACKBONE, MatchingConfig, MatchingTracker
 from trackers.head import masked_mean, smooth_l1
 from trackers.layers import MLP
+from trackers.registry import register
 
 __all__ = ["BAT", "BATConfig", "BoxAwareFusion", "box_cloud"]
 
@@ -45,7 +48,7 @@ def canonical_boxes(size: torch.Tensor) -> torch.Tensor:
 
 
 @dataclass
-class BATConfig(TrackerConfig):
+class BATConfig(MatchingConfig):
     """BAT hyper-parameters (BAT / Open3DSOT defaults)."""
 
     hidden_channels: int = 256
@@ -80,21 +83,26 @@ class BoxAwareFusion(nn.Module):
         return z, s_bc
 
 
-class BAT(Tracker):
+@register("bat")
+class BAT(MatchingTracker):
     """BAT: backbone, BAFF with Box-Cloud, VoteNet proposal head, Box-Cloud loss."""
 
-    name = "bat"
     config_class = BATConfig
-    default_loss_weights = {"vote": 1.0, "seed": 0.2, "objectness": 1.5, "box": 0.2,
-                            "box_cloud": 1.0}
+    default_loss_weights: ClassVar[dict[str, float]] = {
+        "vote": 1.0, "seed": 0.2, "objectness": 1.5, "box": 0.2, "box_cloud": 1.0}
+    sizes: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        "slim": {"backbone": SLIM_BACKBONE, "hidden_channels": 64, "out_channels": 128,
+                 "head": {"vote_channels": 128}},
+    }
 
-    def build_fusion(self) -> None:
+    def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:
         cfg = self.config
         if cfg.k < 1:
             raise ValueError(f"bat config: k must be >= 1, got {cfg.k}")
-        self.fusion = BoxAwareFusion(self.backbone.out_channels, cfg.hidden_channels,
-                                     cfg.out_channels, cfg.k, cfg.use_search_feature)
-        self.fused_channels = cfg.out_channels
+        fusion = BoxAwareFusion(in_channels, cfg.hidden_channels, cfg.out_channels, cfg.k,
+                                cfg.use_search_feature)
+        return fusion, cfg.out_channels
 
     def fuse(self, t_xyz, t_feat, s_xyz, s_feat, batch):
         size = batch.get("size")

@@ -1,5 +1,6 @@
-"""GPT (graph-based point tracker, 002_5a0ed2af763dae64): graph feature augmentation (GFA) with
-the improved target clue (ITC) + the shared head.
+"""GPT (Park, Seong, Jang, Kim, "Graph-Based Point Tracker for 3D Object Tracking in Point Clouds",
+AAAI 2022): graph feature augmentation (GFA) with the improved target clue (ITC) + the shared
+voting head.
 
 * Nodes (Eq. 1): ``f_T^node = phi(f_T^seed)``, ``f_S^node = varphi(f_S^seed)``, two different
   ``1x1`` convolutions ``D_seed = 256 -> D_node = 128``.
@@ -23,21 +24,23 @@ search node; an edge's pre-activation is their difference.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from trackers import ops
-from trackers.base import Tracker, TrackerConfig
+from trackers.base import SLIM_BACKBONE, MatchingConfig, MatchingTracker
 from trackers.head import smooth_l1
 from trackers.layers import MLP
+from trackers.registry import register
 
 __all__ = ["GPT", "GPTConfig", "GraphFusion"]
 
 
 @dataclass
-class GPTConfig(TrackerConfig):
+class GPTConfig(MatchingConfig):
     """GPT hyper-parameters (the paper's Implementation Details)."""
 
     node_channels: int = 128
@@ -80,38 +83,29 @@ class GraphFusion(nn.Module):
         pre = ops.group(per_t, nbr) - per_s[:, :, None, :]  # (B, M_S, k, out)
         return self.edge.forward_from(0, pre).amax(dim=2), votes
 
-    def forward_naive(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
-                      s_feat: torch.Tensor) -> torch.Tensor:
-        """Reference: explicit ``[x_T; f_T - f_S; clue]`` edge features (tests)."""
-        f_t, f_s = self.phi(t_feat), self.varphi(s_feat)
-        if self.use_itc:
-            seed = torch.cat([t_xyz, t_feat], dim=-1)
-            clue = self.itc((seed + self.template_vote(seed))[..., 3:])
-        else:
-            clue = f_t
-        _, nbr = ops.knn(min(self.k, f_t.shape[1]), f_s, f_t)
-        g_x, g_f, g_c = ops.group(t_xyz, nbr), ops.group(f_t, nbr), ops.group(clue, nbr)
-        edge_in = torch.cat([g_x, g_f - f_s[:, :, None, :], g_c], dim=-1)
-        return self.edge(edge_in).amax(dim=2)
 
-
-class GPT(Tracker):
+@register("gpt")
+class GPT(MatchingTracker):
     """GPT: backbone, GFA with ITC, VoteNet proposal head, template-vote loss."""
 
-    name = "gpt"
     config_class = GPTConfig
-    default_loss_weights = {"vote": 0.9, "template_vote": 0.1, "seed": 0.2, "box": 0.2,
-                            "objectness": 1.5}
+    default_loss_weights: ClassVar[dict[str, float]] = {
+        "vote": 0.9, "template_vote": 0.1, "seed": 0.2, "box": 0.2, "objectness": 1.5}
+    sizes: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        "slim": {"backbone": SLIM_BACKBONE, "node_channels": 64, "itc_channels": 64,
+                 "out_channels": 128, "head": {"vote_channels": 128}},
+    }
 
-    def build_fusion(self) -> None:
+    def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:
         cfg = self.config
         if cfg.k < 1:
             raise ValueError(f"gpt config: k must be >= 1, got {cfg.k}")
         if not cfg.use_itc and "template_vote" in cfg.loss_weights:
             cfg.loss_weights = {k: v for k, v in cfg.loss_weights.items() if k != "template_vote"}
-        self.fusion = GraphFusion(self.backbone.out_channels, cfg.node_channels, cfg.itc_channels,
-                                  cfg.out_channels, cfg.k, cfg.use_itc)
-        self.fused_channels = cfg.out_channels
+        fusion = GraphFusion(in_channels, cfg.node_channels, cfg.itc_channels, cfg.out_channels,
+                             cfg.k, cfg.use_itc)
+        return fusion, cfg.out_channels
 
     def fuse(self, t_xyz, t_feat, s_xyz, s_feat, batch):
         z, votes = self.fusion(t_xyz, t_feat, s_feat)

@@ -8,8 +8,9 @@ From the fused search features ``Z (B, M, D)`` at the search seeds ``xyz (B, M, 
   sampling of votes) are cluster centres; each clusters the votes within ``cluster_radius``
   (ball query, ``cluster_votes`` slots); ``MLP [3+1+D, V, V, V]`` on ``[vote_xyz - centre;
   sigmoid(score); vote_feature]``, max over the cluster, then ``MLP [V, V, V, 5]`` -> centre
-  offset (3), yaw, objectness logit. In eval mode the cluster max runs over the real members
-  only (:func:`trackers.layers.grouped_max`; the padding slots repeat a member: same max).
+  offset (3), yaw, objectness logit. On the fast eval path (``fast_eval=True``) the cluster max
+  runs over the real members only (:func:`trackers.layers.grouped_max`; the padding slots repeat
+  a member: same max); the plain path evaluates the dense ``(B, P, k)`` groups.
 
 A proposal is ``(x, y, z, yaw)`` of the target box in the search (reference-box) frame, which is
 exactly the env's action ``(dx, dy, dz, dyaw)``. Internally the yaw output is in degrees by
@@ -72,7 +73,7 @@ class VotingHead(nn.Module):
         self.aggregate = MLP([3 + 1 + d, v, v, v])
         self.proposal = MLP([v, v, v, 5], last_activation=False)
         self.yaw_scale = math.pi / 180.0 if config.yaw_unit == "deg" else 1.0
-        self.ragged_eval = True  # eval: cluster max over real members only (tests switch off)
+        self.fast_eval = True  # eval: cluster max over the real members only
 
     def forward(self, xyz: torch.Tensor, z: torch.Tensor) -> dict[str, torch.Tensor]:
         m = xyz.shape[1]
@@ -88,7 +89,7 @@ class VotingHead(nn.Module):
                                        vote_feat], dim=-1), w, b)
         per_centre = centres @ w[:, :3].t()
         radius, k = self.config.cluster_radius, self.config.cluster_votes
-        if self.training or not self.ragged_eval:  # dense: BatchNorm statistics over every slot
+        if self.training or not self.fast_eval:  # dense: BatchNorm statistics over every slot
             idx = ops.ball_query(radius, k, vote_xyz, centres)  # (B, P, k)
             pre = ops.group(per_vote, idx) - per_centre[:, :, None, :]  # (B, P, k, V)
             cluster = self.aggregate.forward_from(0, pre).amax(dim=2)  # (B, P, V)

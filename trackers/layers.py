@@ -5,14 +5,21 @@
 are ``(..., c0)``; BatchNorm normalises over every leading position (as ``BatchNorm2d`` over
 ``(B, C, M, k)`` does in the reference code).
 
-In eval mode each BatchNorm is folded into its Linear (one matmul, no extra pass) - the same
-function up to float rounding. The first layer can be evaluated separately
-(:meth:`MLP.linear_params` + :meth:`MLP.forward_from`) so callers can decompose it over the parts
-of a concatenated input (the linear-first-layer trick used by the set abstraction, the P2B fusion,
-the GPT edge convolution and the proposal aggregation).
+Two eval paths, chosen by the module's ``fast_eval`` flag (set for a whole tracker by
+:attr:`trackers.base.Tracker.fast_eval`, or :func:`set_fast_eval` on any module tree):
+
+* plain (``fast_eval=False``): ``Linear -> BatchNorm (running statistics) -> ReLU``, the training
+  computation with the running statistics - the path to read and debug;
+* fast (``fast_eval=True``, the default): each BatchNorm folded into its Linear (one matmul, no
+  extra pass; cached while the weights do not change) - the same function up to float rounding.
+
+The first layer can be evaluated separately (:meth:`MLP.linear_params` + :meth:`MLP.forward_from`)
+so callers can decompose it over the parts of a concatenated input (the linear-first-layer trick
+used by the set abstraction, the P2B fusion, the GPT edge convolution and the proposal
+aggregation). No method modifies its input tensors.
 
 :func:`grouped_max` evaluates ``max over a group of MLP(pre)`` on the real members of ball-query
-groups only (ragged), for the set abstraction and the proposal aggregation in eval mode.
+groups only (ragged), for the set abstraction and the proposal aggregation on the fast path.
 """
 
 from __future__ import annotations
@@ -24,7 +31,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["MLP", "grouped_max"]
+__all__ = ["MLP", "grouped_max", "set_fast_eval"]
+
+
+def set_fast_eval(module: nn.Module, enabled: bool) -> None:
+    """Set ``fast_eval`` on every submodule of ``module`` (itself included) that has the flag."""
+    for sub in module.modules():
+        if hasattr(sub, "fast_eval"):
+            sub.fast_eval = bool(enabled)
 
 
 class MLP(nn.Module):
@@ -48,19 +62,13 @@ class MLP(nn.Module):
         # the same modules as a plain tuple: ModuleList indexing costs ~4 us, and a forward at
         # batch 1 asks for every layer's parameters
         self._layers = tuple(zip(self.linears, self.norms, strict=True))
+        self.fast_eval = True  # eval: BatchNorm folded into the Linear (see the module doc)
         # layer -> (source tensors, their versions and addresses, folded weight and bias)
         self._folded: dict[int, tuple[tuple, list, tuple[torch.Tensor, torch.Tensor]]] = {}
 
-    @property
-    def in_channels(self) -> int:
-        return self.channels[0]
-
-    @property
-    def out_channels(self) -> int:
-        return self.channels[-1]
-
     def linear_params(self, i: int = 0) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Weight ``(c_out, c_in)`` and bias of layer ``i``; in eval mode with BatchNorm folded.
+        """Weight ``(c_out, c_in)`` and bias of layer ``i``; on the fast eval path with its
+        BatchNorm folded in (:meth:`finish` then applies only the ReLU).
 
         Without autograd the folded pair is cached, keyed by the tensors it is made of, their
         version counters (any in-place update - an optimiser step, ``load_state_dict`` -
@@ -69,9 +77,9 @@ class MLP(nn.Module):
         from the modules' parameter dicts (``nn.Module.__getattr__`` costs more than the check).
         """
         lin, norm = self._layers[i]
-        if self.training or not self.activated[i]:
+        if self.training or not self.fast_eval or not self.activated[i]:
             return lin.weight, lin.bias
-        if torch.is_grad_enabled():
+        if torch.is_grad_enabled():  # a fresh fold: gradients reach the parameters
             return self._fold(i)
         lp, np_, nb = lin._parameters, norm._parameters, norm._buffers
         sources = (lp["weight"], lp["bias"], np_["weight"], np_["bias"], nb["running_mean"],
@@ -92,14 +100,13 @@ class MLP(nn.Module):
         return lin.weight * scale[:, None], shift
 
     def finish(self, i: int, pre: torch.Tensor) -> torch.Tensor:
-        """BatchNorm (training mode only; folded otherwise) and ReLU of layer ``i``."""
+        """BatchNorm (unless folded: the fast eval path) and ReLU of layer ``i`` -> a new tensor."""
         if not self.activated[i]:
             return pre
-        if self.training:
+        if self.training or not self.fast_eval:
             shape = pre.shape
             pre = self.norms[i](pre.reshape(-1, shape[-1])).reshape(shape)
-            return F.relu(pre)
-        return F.relu(pre) if torch.is_grad_enabled() else F.relu_(pre)
+        return F.relu(pre)
 
     def forward_from(self, i: int, pre: torch.Tensor) -> torch.Tensor:
         """Continue from the pre-activation of layer ``i`` (its ``linear_params`` applied)."""
@@ -130,12 +137,13 @@ def grouped_max(mlp: MLP, per_point: torch.Tensor, per_centre: torch.Tensor,
     (in training BatchNorm statistics would differ, so callers use it in eval unless asked).
     """
     b, m, c1 = per_centre.shape
+    plain = mlp.training or not mlp.fast_eval
     # index_select, not [...]: its backward is several times faster on CPU (see ops.gather)
     pre = (per_point.reshape(-1, c1).index_select(0, point)
            - per_centre.reshape(-1, c1).index_select(0, group))
     last = len(mlp.linears) - 1
     bias = None
-    if mlp.training:  # BatchNorm on batch statistics: every member's full output
+    if plain:  # BatchNorm on batch statistics (training), or unfolded: every member's output
         h = mlp.forward_from(0, pre)  # (P, C)
     elif last == 0:
         h = pre
@@ -145,7 +153,7 @@ def grouped_max(mlp: MLP, per_point: torch.Tensor, per_centre: torch.Tensor,
         h = F.linear(mlp.hidden_from(0, pre, last), w)
     out = h.new_full((b * m, h.shape[-1]), -torch.inf)  # every group has a member
     out.scatter_reduce_(0, group[:, None].expand(-1, h.shape[-1]), h, "amax")
-    if mlp.training:
+    if plain:
         return out.view(b, m, -1)
     if bias is not None:
         out = out + bias

@@ -5,7 +5,7 @@ Indices are ``int64``. Every op gives the same result on CPU and GPU (the orderi
 integer or comparison based; distances are computed the same way on both).
 
 * sampling: :func:`random_order` (a ``torch.Generator``), :func:`hash_order` (deterministic and
-  independent of the input order), :func:`random_sample`, :func:`farthest_point_sample`;
+  independent of the input order), :func:`farthest_point_sample`;
 * neighbourhoods: :func:`ball_query` (PointNet++ semantics; :func:`ball_query_pairs` lists its
   real hits), :func:`knn` (any dimension: coordinates or features), :func:`pairwise_sqdist`;
 * indexing: :func:`gather` / :func:`group`; copies of a point: :func:`first_copy`.
@@ -30,7 +30,6 @@ __all__ = [
     "knn",
     "pairwise_sqdist",
     "random_order",
-    "random_sample",
 ]
 
 _MASK32 = 0xFFFFFFFF
@@ -184,15 +183,6 @@ def first_copy(xyz: torch.Tensor) -> torch.Tensor:
     starts[:, 1:] = (ordered[:, 1:] != ordered[:, :-1]).any(-1)
     run_start = torch.where(starts, pos, torch.zeros_like(pos)).cummax(dim=1).values
     return torch.empty_like(order).scatter_(1, order, order.gather(1, run_start))
-
-
-def random_sample(
-    xyz: torch.Tensor, n: int, generator: torch.Generator | None = None
-) -> torch.Tensor:
-    """Indices of ``n`` points drawn without replacement: ``xyz (B, N, C)`` -> ``(B, n)``."""
-    if n > xyz.shape[1]:
-        raise ValueError(f"cannot sample {n} of {xyz.shape[1]} points without replacement")
-    return random_order(xyz.shape[0], xyz.shape[1], generator, xyz.device)[:, :n]
 
 
 def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Tensor:

@@ -1,140 +1,41 @@
-"""P2B (Qi et al., CVPR 2020): target-specific feature augmentation (TFA) + the shared head.
+"""P2B (Qi et al., "P2B: Point-to-Box Network for 3D Object Tracking in Point Clouds", CVPR
+2020): target-specific feature augmentation (TFA) + the shared voting head.
 
 TFA: for every template seed ``i`` and search seed ``j`` the input ``[cos(f_T,i, f_S,j); x_T,i;
 f_T,i]`` (1 + 3 + D = 260 channels) goes through ``MLP [260, 256, 256, 256]``, max over the template
 seeds, then ``MLP [256, 256, 256]`` (Conv-BN-ReLU, Conv) -> ``Z (B, M_S, 256)``.
 
-Speed: the first Linear is linear in its concatenated input, so it is computed once per template
-seed (``W_t [x_T; f_T] + b``) and the similarity enters as ``cos_ij * w_cos`` - broadcast-added to
-form the ``(B, M_T, M_S, 256)`` pre-activation (:meth:`P2BFusion.forward_naive` is the plain
-concatenation; the tests check both agree). In eval mode repeated template seeds (copies of one
-padded input point) are dropped first (:func:`unique_seeds`): the max over template seeds is the
-same, and sparse targets - heavily padded templates - cost less.
-
-Eval speed (no autograd; :meth:`P2BFusion.forward_dense` is the dense path, kept for training):
-for a template seed ``i`` the pre-activation ``a_i + c * w_cos`` depends on the pair only through
-the scalar ``c = cos_ij``, so the TFA MLP output is ``F_i(c)``, a continuous piecewise-linear
-function of ``c`` (Linear + ReLU layers). :func:`knots` finds all its breakpoints in
-``[min_j c_ij, max_j c_ij]`` exactly, layer by layer: between consecutive known knots a layer's
-pre-activation is affine, so each sign change between two knots is one kink, located by linear
-interpolation. The last layer's pre-activation is evaluated at the knots only, interpolated
-linearly at every ``c_ij`` (one small ``bmm``), and the final ReLU applied after the max over
-``i`` (``max_i relu = relu max_i``). The shipped P2B checkpoints have a handful of knots per
-template seed on env observations (mean 3-5, at most 16; random init: 2-4), against 128 search
-seeds: the same function (to float rounding) with a fraction of the work. When knots are too many
-the dense path is used (:data:`MAX_KNOT_FRACTION`).
+The first Linear is linear in its concatenated input, so it is computed once per template seed
+(``W_t [x_T; f_T] + b``) and the similarity enters as ``cos_ij * w_cos``, broadcast-added to form
+the ``(B, M_T, M_S, 256)`` pre-activation (:meth:`P2BFusion.forward_plain`: training, and eval
+with ``fast_eval=False``). The fast eval path (:meth:`P2BFusion.forward_fast`, the default in
+eval) drops repeated template seeds and evaluates the TFA max by exact piecewise-linear
+interpolation in the similarity (:mod:`trackers.p2b_knots`): the same function to float rounding.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from trackers import ops
-from trackers.base import Tracker, TrackerConfig
+from trackers import p2b_knots
+from trackers.base import SLIM_BACKBONE, MatchingConfig, MatchingTracker
 from trackers.layers import MLP
+from trackers.registry import register
 
-__all__ = ["MAX_KNOT_FRACTION", "P2B", "P2BConfig", "P2BFusion", "interpolate_max", "knots",
-           "pre_activation", "unique_seeds"]
-
-#: Knots per template seed (a fraction of the search seeds) above which the dense path is cheaper.
-MAX_KNOT_FRACTION = 0.25
-#: Floats in one interpolated block (1 MiB): small enough to stay in cache for the running max.
-_CACHE_FLOATS = 1 << 18
+__all__ = ["P2B", "P2BConfig", "P2BFusion"]
 
 
 @dataclass
-class P2BConfig(TrackerConfig):
+class P2BConfig(MatchingConfig):
     """P2B hyper-parameters; TFA hidden/out channels (P2B: 256 / 256)."""
 
     hidden_channels: int = 256
     out_channels: int = 256
-
-
-def unique_seeds(xyz: torch.Tensor, feats: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Drop repeated seeds ``(B, M, 3)``, ``(B, M, D)`` -> ``(B, U, 3)``, ``(B, U, D)``.
-
-    Copies of one input point (the env pads small clouds with copies) are seeds with equal
-    coordinates and - same centre, same neighbourhood - equal features, so a max over seeds is
-    unchanged without them. ``U`` is the largest count of distinct seeds in the batch; rows with
-    fewer keep some copies (harmless for a max).
-    """
-    same = (xyz[:, :, None, :] == xyz[:, None, :, :]).all(-1)  # (B, M, M)
-    earlier = torch.ones_like(same[0], dtype=torch.bool).tril(-1)
-    first = ~(same & earlier).any(-1)  # (B, M): no earlier equal seed
-    u = int(first.sum(1).max())
-    if u == xyz.shape[1]:
-        return xyz, feats
-    keep = torch.sort((~first).to(torch.uint8), dim=1, stable=True).indices[:, :u]
-    return ops.gather(xyz, keep), ops.gather(feats, keep)
-
-
-def pre_activation(mlp: MLP, a: torch.Tensor, w: torch.Tensor, c: torch.Tensor,
-                   layer: int) -> torch.Tensor:
-    """Pre-activation of ``layer`` for scalar inputs: ``a (B, M, H)``, ``w (H,)``, ``c (B, M, K)``
-    -> ``(B, M, K, C)``, the MLP applied to the first-layer pre-activations ``a + c w``."""
-    x = torch.addcmul(a[:, :, None, :], c[..., None], w)
-    for i in range(1, layer + 1):
-        wi, bi = mlp.linear_params(i)
-        x = F.linear(mlp.finish(i - 1, x), wi, bi)
-    return x
-
-
-def knots(mlp: MLP, a: torch.Tensor, w: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
-          max_knots: int) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Breakpoints of ``c -> mlp`` (eval: Linear + ReLU layers) with first-layer pre-activation
-    ``a + c w`` on ``[lo, hi]``: ``a (B, M, H)``, ``w (H,)``, ``lo, hi (B, M)`` -> sorted knots
-    ``(B, M, K)`` (from ``lo`` to ``hi``; rows with fewer knots repeat ``hi``) and the last
-    layer's pre-activation at them ``(B, M, K, C)``; None when a row needs more than
-    ``max_knots`` knots (then evaluating at the knots saves nothing).
-    """
-    t = torch.stack([lo, hi], dim=-1)  # (B, M, K)
-    for layer in range(len(mlp.linears) - 1):
-        pre = pre_activation(mlp, a, w, t, layer)  # (B, M, K, C): affine between knots
-        p0, p1 = pre[:, :, :-1], pre[:, :, 1:]
-        cross = (p0 > 0) != (p1 > 0)  # (B, M, K - 1, C): one zero of the ReLU input inside
-        new = int(cross.flatten(2).sum(-1).max())
-        if t.shape[-1] + new > max_knots:
-            return None
-        if new == 0:
-            continue
-        t0, t1 = t[:, :, :-1, None], t[:, :, 1:, None]
-        # p0 / (p0 - p1) is in [0, 1] where the signs differ: a well-conditioned interpolation
-        zero = torch.addcmul(t0, t1 - t0, p0 / torch.where(cross, p0 - p1, 1.0))
-        zero = torch.minimum(zero, t1)  # rounding must not move a kink past its interval
-        zero = torch.where(cross, zero, hi[:, :, None, None])  # padding: repeats of hi
-        t = torch.cat([t, zero.flatten(2)], dim=-1)
-        t = t.topk(t.shape[-1] - zero.shape[2] * zero.shape[3] + new, dim=-1, largest=False,
-                   sorted=True).values
-    return t, pre_activation(mlp, a, w, t, len(mlp.linears) - 1)
-
-
-def interpolate_max(t: torch.Tensor, values: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
-    """Max over ``M`` of a piecewise-linear interpolation: knots ``t (B, M, K)`` (sorted),
-    ``values (B, M, K, C)`` at them, queries ``c (B, M, N)`` within ``[t_0, t_K-1]`` ->
-    ``max_m f_m(c_mn)``, ``(B, N, C)``.
-
-    Each interpolation is a ``bmm`` with an ``(N, K)`` matrix holding ``1 - lambda`` and
-    ``lambda`` at the two enclosing knots (cheaper than gathering two ``C``-rows per query), done
-    for a few ``m`` at a time: the ``(chunk, N, C)`` block stays in cache for the running max.
-    """
-    b, m, k = t.shape
-    q = (torch.searchsorted(t, c.contiguous(), right=True) - 1).clamp_(0, k - 2)  # (B, M, N)
-    t0, t1 = t.gather(2, q), t.gather(2, q + 1)
-    span = t1 - t0
-    lam = torch.where(span > 0, (c - t0) / torch.where(span > 0, span, 1.0), 0.0).clamp_(0, 1)
-    coef = c.new_zeros(b, m, c.shape[2], k)
-    coef.scatter_(3, q[..., None], (1 - lam)[..., None])
-    coef.scatter_(3, q[..., None] + 1, lam[..., None])
-    chunk = max(1, _CACHE_FLOATS // (b * c.shape[2] * values.shape[-1]))
-    out = None
-    for s in range(0, m, chunk):
-        part = torch.matmul(coef[:, s:s + chunk], values[:, s:s + chunk]).amax(dim=1)
-        out = part if out is None else torch.maximum(out, part, out=out)
-    return out
 
 
 class P2BFusion(nn.Module):
@@ -142,7 +43,7 @@ class P2BFusion(nn.Module):
 
     def __init__(self, d: int, hidden: int, out: int) -> None:
         super().__init__()
-        self.dedupe_eval = True
+        self.fast_eval = True  # eval: de-duplicated seeds, knot interpolation (module doc)
         self.mlp = MLP([1 + 3 + d, hidden, hidden, hidden])
         self.post = MLP([hidden, hidden, out], last_activation=False)
 
@@ -154,18 +55,9 @@ class P2BFusion(nn.Module):
 
     def forward(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
                 s_feat: torch.Tensor) -> torch.Tensor:
-        if self.training or torch.is_grad_enabled():
-            return self.forward_dense(t_xyz, t_feat, s_feat)
-        if self.dedupe_eval:
-            t_xyz, t_feat = unique_seeds(t_xyz, t_feat)
-        cos = self.cosine(t_feat, s_feat)
-        a, w = self.first_layer(t_xyz, t_feat)
-        max_knots = max(2, int(MAX_KNOT_FRACTION * cos.shape[2]))
-        found = knots(self.mlp, a, w, cos.amin(dim=2), cos.amax(dim=2), max_knots)
-        if found is None:
-            return self.post(self.mlp.forward_from(0, self.pair_pre(a, w, cos)).amax(dim=1))
-        pre_max = interpolate_max(found[0], found[1], cos)  # (B, M_S, H)
-        return self.post(self.mlp.finish(len(self.mlp.linears) - 1, pre_max))
+        if self.training or not self.fast_eval:
+            return self.forward_plain(t_xyz, t_feat, s_feat)
+        return self.forward_fast(t_xyz, t_feat, s_feat)
 
     def first_layer(self, t_xyz: torch.Tensor, t_feat: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -173,41 +65,44 @@ class P2BFusion(nn.Module):
         w, b = self.mlp.linear_params(0)
         return F.linear(torch.cat([t_xyz, t_feat], dim=-1), w[:, 1:], b), w[:, 0]
 
-    @staticmethod
-    def pair_pre(a: torch.Tensor, w: torch.Tensor, cos: torch.Tensor) -> torch.Tensor:
-        """First-layer pre-activation of every pair ``a_i + cos_ij w`` -> ``(B, M_T, M_S, H)``."""
-        return torch.addcmul(a[:, :, None, :], cos[..., None], w)
-
-    def forward_dense(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
+    def forward_plain(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
                       s_feat: torch.Tensor) -> torch.Tensor:
-        """The MLP on every (template seed, search seed) pair (training; gradients)."""
-        if not self.training and self.dedupe_eval:
-            t_xyz, t_feat = unique_seeds(t_xyz, t_feat)
+        """The TFA MLP on every (template seed, search seed) pair, max over template seeds."""
         a, w = self.first_layer(t_xyz, t_feat)
-        pre = self.pair_pre(a, w, self.cosine(t_feat, s_feat))
+        cos = self.cosine(t_feat, s_feat)  # (B, M_T, M_S)
+        pre = torch.addcmul(a[:, :, None, :], cos[..., None], w)  # (B, M_T, M_S, H)
         return self.post(self.mlp.forward_from(0, pre).amax(dim=1))
 
-    def forward_naive(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
-                      s_feat: torch.Tensor) -> torch.Tensor:
-        """Reference: the explicit ``(B, M_T, M_S, 260)`` concatenation."""
+    def forward_fast(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
+                     s_feat: torch.Tensor) -> torch.Tensor:
+        """:meth:`forward_plain` by knot interpolation (:mod:`trackers.p2b_knots`); every pair
+        when the knots are too many."""
+        t_xyz, t_feat = p2b_knots.unique_seeds(t_xyz, t_feat)
         cos = self.cosine(t_feat, s_feat)
-        mt, ms = cos.shape[1], cos.shape[2]
-        t = torch.cat([t_xyz, t_feat], dim=-1)[:, :, None, :].expand(-1, mt, ms, -1)
-        x = torch.cat([cos[..., None], t], dim=-1)
-        return self.post(self.mlp(x).amax(dim=1))
+        a, w = self.first_layer(t_xyz, t_feat)
+        pre_max = p2b_knots.tfa_pre_max(self.mlp, a, w, cos)  # (B, M_S, H) or None
+        if pre_max is None:
+            pre = torch.addcmul(a[:, :, None, :], cos[..., None], w)
+            return self.post(self.mlp.forward_from(0, pre).amax(dim=1))
+        return self.post(self.mlp.finish(len(self.mlp.linears) - 1, pre_max))
 
 
-class P2B(Tracker):
+@register("p2b")
+class P2B(MatchingTracker):
     """P2B: backbone, TFA, VoteNet proposal head."""
 
-    name = "p2b"
     config_class = P2BConfig
-    default_loss_weights = {"vote": 1.0, "seed": 0.2, "objectness": 1.5, "box": 0.2}
+    default_loss_weights: ClassVar[dict[str, float]] = {
+        "vote": 1.0, "seed": 0.2, "objectness": 1.5, "box": 0.2}
+    sizes: ClassVar[dict[str, dict[str, Any]]] = {
+        "default": {},
+        "slim": {"backbone": SLIM_BACKBONE, "hidden_channels": 64, "out_channels": 128,
+                 "head": {"vote_channels": 128}},
+    }
 
-    def build_fusion(self) -> None:
+    def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:
         cfg = self.config
-        self.fusion = P2BFusion(self.backbone.out_channels, cfg.hidden_channels, cfg.out_channels)
-        self.fused_channels = cfg.out_channels
+        return P2BFusion(in_channels, cfg.hidden_channels, cfg.out_channels), cfg.out_channels
 
     def fuse(self, t_xyz, t_feat, s_xyz, s_feat, batch):
         return self.fusion(t_xyz, t_feat, s_feat), {}

@@ -1,4 +1,11 @@
-"""``make`` / ``save`` / ``load`` for trackers.
+"""The tracker registry (``register``, ``available``) and ``make`` / ``save`` / ``load``.
+
+A tracker is a class with ``act(obs)`` registered under a name with the :func:`register` class
+decorator: a learned tracker (a :class:`trackers.base.Tracker`, weights and a config) or a
+baseline (any class with ``act``; ``make`` passes its keywords to the constructor). The registry
+is the one list of names: ``make``, ``load``, ``save``, the training config's validation, the
+CLI's choices and the tests' lists all read it (:func:`available`). It is the package's only
+mutable global; the built-in trackers register when :mod:`trackers` is imported.
 
 Checkpoint formats (never an arbitrary pickle):
 
@@ -7,6 +14,10 @@ Checkpoint formats (never an arbitrary pickle):
 * ``.pt`` / ``.pth``: ``{"format", "version", "tracker", "config": <JSON str>, "state_dict"}``
   written by ``torch.save`` and read with ``torch.load(weights_only=True)``.
 
+Integrity: a shipped checkpoint (``trackers/checkpoints/``) loads only when its SHA-256 matches
+``trackers/checkpoints/manifest.json`` (:func:`write_manifest` records it); no checkpoint loads with
+NaN or inf weights.
+
 ``load(name_or_path)``: an existing file; else a shipped checkpoint
 ``trackers/checkpoints/<name>.safetensors`` (or ``.pt``); else a registered tracker name (a fresh,
 untrained learned tracker, or a baseline). ``expect=`` refuses a checkpoint of another tracker.
@@ -14,44 +25,97 @@ untrained learned tracker, or a baseline). ``expect=`` refuses a checkpoint of a
 
 from __future__ import annotations
 
-import importlib
+import copy
+import hashlib
 import json
+import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 
-__all__ = ["CHECKPOINT_DIR", "available", "find_checkpoint", "load", "make", "save"]
+__all__ = ["CHECKPOINT_DIR", "MANIFEST", "available", "find_checkpoint", "load", "load_file",
+           "make", "register", "save", "size_config", "tracker_class", "unregister",
+           "write_manifest"]
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
+MANIFEST = CHECKPOINT_DIR / "manifest.json"
 FORMAT = "pointtrack-tracker"
 VERSION = "1"
+_MANIFEST_FORMAT = "pointtrack-checkpoint-manifest"
+_KINDS = ("all", "learned", "baseline", "checkpoint")
 
-# name -> (module, class); baselines live in trackers.baselines (env builder), imported lazily
-_LEARNED = {"p2b": ("trackers.p2b", "P2B"), "bat": ("trackers.bat", "BAT"),
-            "gpt": ("trackers.gpt", "GPT")}
-_BASELINES = {"previous_box": ("trackers.baselines", "PreviousBox"),
-              "constant_velocity": ("trackers.baselines", "ConstantVelocity")}
-
-
-def _class(name: str) -> type:
-    key = name.lower()
-    entry = _LEARNED.get(key) or _BASELINES.get(key)
-    if entry is None:
-        raise ValueError(f"unknown tracker {name!r}; available: {available()}")
-    module, attr = entry
-    try:
-        return getattr(importlib.import_module(module), attr)
-    except (ImportError, AttributeError) as exc:
-        raise ImportError(f"tracker {name!r} needs {module}.{attr}, which is not available: "
-                          f"{exc}") from exc
+# name -> class; filled by @register (the built-ins when the trackers package is imported)
+_REGISTRY: dict[str, type] = {}
 
 
-def available() -> list[str]:
-    """Registered tracker names followed by the shipped checkpoint names."""
+def register(name: str) -> Callable[[type], type]:
+    """Class decorator: register a tracker class under ``name`` (lower case, no ``/``) and set
+    its ``name`` attribute. A learned tracker subclasses :class:`trackers.base.Tracker`; a
+    baseline needs only ``act``. A name already registered is an error naming the registered
+    ones (:func:`unregister` first to replace a tracker)."""
+    if not isinstance(name, str) or not name or name != name.lower() or "/" in name:
+        raise ValueError(f"tracker name must be a non-empty lower-case string without '/', "
+                         f"got {name!r}")
+
+    def decorate(cls: type) -> type:
+        if name in _REGISTRY:
+            raise ValueError(f"tracker name {name!r} is already registered (by "
+                             f"{_REGISTRY[name].__module__}.{_REGISTRY[name].__qualname__}); "
+                             f"registered: {sorted(_REGISTRY)}")
+        if not callable(getattr(cls, "act", None)):
+            raise TypeError(f"tracker {name!r}: {cls.__qualname__} has no act(obs) method")
+        cls.name = name
+        _REGISTRY[name] = cls
+        return cls
+
+    return decorate
+
+
+def unregister(name: str) -> type:
+    """Remove ``name`` from the registry (tests, plug-ins replacing a tracker) -> its class."""
+    tracker_class(name)  # the unknown-name error
+    return _REGISTRY.pop(name.lower())
+
+
+def tracker_class(name: str) -> type:
+    """The class registered as ``name`` (case-insensitive); unknown names name the valid ones."""
+    cls = _REGISTRY.get(str(name).lower())
+    if cls is None:
+        raise ValueError(f"unknown tracker {name!r}; registered: {sorted(_REGISTRY)}")
+    return cls
+
+
+def _is_learned(cls: type) -> bool:
+    from trackers.base import Tracker
+
+    return issubclass(cls, Tracker)
+
+
+def available(kind: str = "all") -> list[str]:
+    """Tracker names: ``"learned"`` (registered learned trackers), ``"baseline"``,
+    ``"checkpoint"`` (the shipped checkpoints) or ``"all"`` (those three, in that order)."""
+    if kind not in _KINDS:
+        raise ValueError(f"unknown kind {kind!r}; valid: {list(_KINDS)}")
+    learned = [n for n, c in _REGISTRY.items() if _is_learned(c)]
+    baselines = [n for n, c in _REGISTRY.items() if not _is_learned(c)]
     shipped = sorted({p.stem for suffix in ("*.safetensors", "*.pt")
                       for p in CHECKPOINT_DIR.glob(suffix)})
-    return [*_LEARNED, *_BASELINES, *shipped]
+    parts = {"learned": learned, "baseline": baselines, "checkpoint": shipped}
+    return parts[kind] if kind != "all" else [*learned, *baselines, *shipped]
+
+
+def size_config(name: str, size: str = "default") -> dict[str, Any]:
+    """The config keywords of learned tracker ``name`` at model size ``size`` (a copy of its
+    class's ``sizes[size]``); unknown sizes name the valid ones."""
+    cls = tracker_class(name)
+    if not _is_learned(cls):
+        raise ValueError(f"{name!r} is a baseline: it has no model sizes")
+    if size not in cls.sizes:
+        raise ValueError(f"tracker {name!r} has no model size {size!r}; valid: "
+                         f"{sorted(cls.sizes)}")
+    return copy.deepcopy(cls.sizes[size])
 
 
 def make(name: str, **config: Any):
@@ -60,8 +124,7 @@ def make(name: str, **config: Any):
     Learned trackers take their config dataclass fields (nested ones as dicts); baselines take
     their constructor keywords.
     """
-    cls = _class(name)
-    return cls(**config)
+    return tracker_class(name)(**config)
 
 
 def save(tracker: Any, path: str | Path) -> Path:
@@ -71,20 +134,27 @@ def save(tracker: Any, path: str | Path) -> Path:
 
     if not isinstance(tracker, Tracker):
         raise TypeError(f"only learned trackers have weights to save, got {type(tracker).__name__}")
+    if _REGISTRY.get(tracker.name) is not type(tracker):
+        raise ValueError(f"{type(tracker).__qualname__} is not registered as {tracker.name!r}: "
+                         f"load could not rebuild it; registered: {sorted(_REGISTRY)}")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     config_json = json.dumps(config_to_dict(tracker.config), sort_keys=True)
     state = {k: v.detach().cpu().contiguous() for k, v in tracker.state_dict().items()}
-    tmp = path.with_name(path.name + ".tmp")
-    if path.suffix in (".pt", ".pth"):
-        torch.save({"format": FORMAT, "version": VERSION, "tracker": tracker.name,
-                    "config": config_json, "state_dict": state}, tmp)
-    else:
-        from safetensors.torch import save_file
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        if path.suffix in (".pt", ".pth"):
+            torch.save({"format": FORMAT, "version": VERSION, "tracker": tracker.name,
+                        "config": config_json, "state_dict": state}, tmp)
+        else:
+            from safetensors.torch import save_file
 
-        save_file(state, str(tmp), metadata={"format": FORMAT, "version": VERSION,
-                                              "tracker": tracker.name, "config": config_json})
-    tmp.replace(path)
+            save_file(state, str(tmp), metadata={"format": FORMAT, "version": VERSION,
+                                                  "tracker": tracker.name,
+                                                  "config": config_json})
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -112,11 +182,82 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
     return meta, state
 
 
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _manifest(directory: Path) -> dict[str, str]:
+    """File name -> SHA-256 of the checkpoints shipped in ``directory``."""
+    manifest = directory / MANIFEST.name
+    try:
+        data = json.loads(manifest.read_text())
+        files = data["files"]
+        if data.get("format") != _MANIFEST_FORMAT or not isinstance(files, dict):
+            raise ValueError(f"format {data.get('format')!r}")
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"cannot read the checkpoint manifest {manifest}: {exc}") from exc
+    return {str(k): str(v) for k, v in files.items()}
+
+
+def write_manifest(directory: str | Path = CHECKPOINT_DIR) -> Path:
+    """Record the SHA-256 of every checkpoint in ``directory`` in its ``manifest.json``
+    (atomically); run it after replacing a shipped checkpoint."""
+    directory = Path(directory)
+    files = {p.name: _sha256(p) for suffix in ("*.safetensors", "*.pt")
+             for p in sorted(directory.glob(suffix))}
+    path = directory / MANIFEST.name
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps({"format": _MANIFEST_FORMAT, "algorithm": "sha256",
+                               "files": files}, indent=1, sort_keys=True) + "\n")
+    tmp.replace(path)
+    return path
+
+
+def _verify_shipped(path: Path) -> None:
+    """A file in the shipped checkpoint directory must match its manifest digest."""
+    directory = path.resolve().parent
+    if directory != CHECKPOINT_DIR:
+        return
+    expected = _manifest(directory).get(path.name)
+    if expected is None:
+        raise ValueError(f"{path} is in the shipped checkpoint directory but not in its manifest "
+                         f"{directory / MANIFEST.name}; run trackers.registry.write_manifest() "
+                         f"after adding a checkpoint")
+    actual = _sha256(path)
+    if actual != expected:
+        raise ValueError(f"{path}: SHA-256 {actual} does not match the manifest's {expected} "
+                         f"({directory / MANIFEST.name}); the file is corrupted or was modified")
+
+
+def _check_finite(path: Path, state: dict[str, torch.Tensor]) -> None:
+    for key, value in state.items():
+        if isinstance(value, torch.Tensor) and value.is_floating_point() \
+                and not bool(torch.isfinite(value).all()):
+            bad = int((~torch.isfinite(value)).sum())
+            raise ValueError(f"{path}: tensor {key!r} has {bad} NaN or inf value(s) of "
+                             f"{value.numel()}; refusing to load")
+
+
+def _migrate(config: dict[str, Any]) -> dict[str, Any]:
+    """Config keys of older checkpoints: ``backbone.ragged_eval`` (now the runtime switch
+    ``Tracker.fast_eval``) is dropped."""
+    backbone = config.get("backbone")
+    if isinstance(backbone, dict) and "ragged_eval" in backbone:
+        config = {**config, "backbone": {k: v for k, v in backbone.items()
+                                         if k != "ragged_eval"}}
+    return config
+
+
 def load_file(path: str | Path, expect: str | None = None, map_location: Any = "cpu"):
     """Load a checkpoint file -> tracker in eval mode on ``map_location``."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no tracker checkpoint at {path}")
+    _verify_shipped(path)
     meta, state = _read(path)
     if meta.get("format") != FORMAT or not meta.get("tracker") or meta.get("config") is None:
         raise ValueError(f"{path} is not a pointtrack tracker checkpoint "
@@ -124,10 +265,13 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
     name = str(meta["tracker"])
     if expect is not None and name != expect.lower():
         raise ValueError(f"{path} holds a {name!r} checkpoint, not {expect!r}")
-    if name not in _LEARNED:
-        raise ValueError(f"{path}: unknown tracker {name!r} in checkpoint")
+    learned = available("learned")
+    if name not in learned:
+        raise ValueError(f"{path}: unknown tracker {name!r} in checkpoint; registered learned "
+                         f"trackers: {learned}")
+    _check_finite(path, state)
     try:
-        config = json.loads(meta["config"])
+        config = _migrate(json.loads(meta["config"]))
     except json.JSONDecodeError as exc:
         raise ValueError(f"{path}: config metadata is not valid JSON: {exc}") from exc
     try:
@@ -162,11 +306,11 @@ def load(name_or_path: str | Path, *, expect: str | None = None, map_location: A
     if checkpoint is not None:
         return load_file(checkpoint, expect, map_location)
     path, name = Path(name_or_path), str(name_or_path)
-    if name.lower() in _LEARNED or name.lower() in _BASELINES:
+    if name.lower() in _REGISTRY:
         if expect is not None and name.lower() != expect.lower():
             raise ValueError(f"{name!r} is not a {expect!r} tracker")
         tracker = make(name)
-        if hasattr(tracker, "to") and name.lower() in _LEARNED:
+        if _is_learned(type(tracker)):
             tracker = tracker.to(map_location).eval()
         return tracker
     if path.suffix or "/" in name or "\\" in name:

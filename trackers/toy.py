@@ -7,8 +7,6 @@ search region in a reference frame the target is slightly offset and rotated fro
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from envs.geometry import box_to_world_torch, world_to_box_torch
@@ -70,8 +68,3 @@ def toy_batch(batch_size: int = 2, seed: int = 0, template_points: int = 512,
                "template_centers": torch.zeros(b, template_points, 3), "template_labels": t_labels}
     return batch, targets
 
-
-if __name__ == "__main__":  # pragma: no cover
-    bt, tg = toy_batch(2)
-    print({k: tuple(v.shape) for k, v in {**bt, **tg}.items()}, tg["search_labels"].mean().item(),
-          math.degrees(float(tg["search_box"][0, 6])))

@@ -24,29 +24,12 @@ __all__ = [
     "tracker_config",
 ]
 
-TRACKERS = ("p2b", "bat", "gpt")
-MODEL_SIZES = ("default", "slim")
-
-_SLIM_BACKBONE = {"channels": [[32, 32, 64], [64, 64, 128], [128, 128, 128]],
-                  "out_channels": 128, "neighbours": 16, "ragged_train": True}
-# Reduced widths for CPU training (the shipped checkpoints): about 6x cheaper per step than the
-# papers' widths, same architecture, same inputs (512 / 1024 points). Ragged training (BatchNorm
-# statistics over real ball-query hits only) saves another ~30 % of a CPU step.
-SLIM = {
-    "p2b": {"backbone": _SLIM_BACKBONE, "hidden_channels": 64, "out_channels": 128,
-            "head": {"vote_channels": 128}},
-    "bat": {"backbone": _SLIM_BACKBONE, "hidden_channels": 64, "out_channels": 128,
-            "head": {"vote_channels": 128}},
-    "gpt": {"backbone": _SLIM_BACKBONE, "node_channels": 64, "itc_channels": 64,
-            "out_channels": 128, "head": {"vote_channels": 128}},
-}
-
-
 def tracker_config(tracker: str, model_size: str = "default", extra: dict | None = None) -> dict:
-    """The kwargs of ``trackers.make(tracker, ...)`` for a model size, updated by ``extra``."""
-    import copy
+    """The kwargs of ``trackers.make(tracker, ...)`` for a model size (the tracker class's
+    ``sizes``, :func:`trackers.size_config`), updated by ``extra``."""
+    import trackers
 
-    base = copy.deepcopy(SLIM[tracker]) if model_size == "slim" else {}
+    base = trackers.size_config(tracker, model_size)
     base.update(extra or {})
     return base
 
@@ -66,7 +49,7 @@ class TrainConfig:
 
     # what is trained
     tracker: str = "p2b"
-    model_size: str = "default"  # default (papers' widths) | slim (see SLIM)
+    model_size: str = "default"  # default (papers' widths) | slim: the tracker class's `sizes`
     tracker_config: dict = field(default_factory=dict)  # extra kwargs of trackers.make
     # start from these weights (a tracker checkpoint file or a shipped checkpoint name, same
     # tracker and config); a fresh optimizer and schedule, unlike --resume
@@ -125,10 +108,14 @@ class TrainConfig:
         def bad(key: str, why: str) -> None:
             errors.append(f"{key}={getattr(self, key)!r}: {why}")
 
-        if self.tracker not in TRACKERS:
-            bad("tracker", f"must be one of {', '.join(TRACKERS)}")
-        if self.model_size not in MODEL_SIZES:
-            bad("model_size", f"must be one of {', '.join(MODEL_SIZES)}")
+        import trackers
+
+        learned = trackers.available("learned")
+        if self.tracker not in learned:
+            bad("tracker", f"must be one of {', '.join(learned)}")
+        elif self.model_size not in trackers.tracker_class(self.tracker).sizes:
+            sizes = trackers.tracker_class(self.tracker).sizes
+            bad("model_size", f"must be one of {', '.join(sizes)} for {self.tracker}")
         if self.weighting not in WEIGHTINGS:
             bad("weighting", f"must be one of {', '.join(WEIGHTINGS)}")
         if self.dataset not in DATASETS:

@@ -436,7 +436,10 @@ class Trainer:
     def _sample_weights(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor | None:
         if self.decor is None:
             return None
-        z = pool_features(outputs["Z"].detach()).float().cpu()
+        # a trackers.Tracker names its decorrelated features; other models give them as "Z"
+        features = getattr(self.model, "features", None)
+        z = features(outputs) if callable(features) else outputs["Z"]
+        z = pool_features(z.detach()).float().cpu()
         w_global = self.decor.weights(self._gather_features(z), self.step)
         local = w_global[self.rank :: self.world] if self.world > 1 else w_global
         return local.to(self.device)

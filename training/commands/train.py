@@ -23,11 +23,15 @@ _RENAMED = {"threads": "num_threads"}
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
-    parser.add_argument("--tracker", choices=("p2b", "bat", "gpt"))
+    import trackers
+
+    parser.add_argument("--tracker", choices=trackers.available("learned"))
     parser.add_argument("--setting", help="class-agnostic setting, e.g. kitti-1 (observed "
                         "categories are trained)")
     parser.add_argument("--category", help="class-specific mode: train on this category only")
-    parser.add_argument("--model-size", dest="model_size", choices=("default", "slim"),
+    sizes = sorted({s for n in trackers.available("learned")
+                    for s in trackers.tracker_class(n).sizes})
+    parser.add_argument("--model-size", dest="model_size", choices=sizes,
                         help="tracker widths: the papers' (default) or slim (CPU training)")
     parser.add_argument("--weighting", choices=("none", "decorrelation", "sam"),
                         help="none (-U), decorrelation (-W), sam (-S)")

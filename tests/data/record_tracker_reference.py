@@ -1,0 +1,70 @@
+"""Record ``tracker_reference.npz``: ``act`` and B = 1 forward outputs of the six shipped
+checkpoints on fixed observations (toy batches, padded clouds, env observations, an empty one).
+
+Recorded once from main at commit cfcfd29 (before the tracker refactor of issue 21), so
+``tests/test_trackers_reference.py`` can check the shipped checkpoints' outputs stay bit-identical.
+Run: ``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python tests/data/record_tracker_reference.py``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import trackers
+from envs.tracking_env import TrackingEnv, make_toy_dataset
+from trackers.toy import toy_batch
+
+CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"]
+KEYS = ("template", "search", "size", "motion")
+
+
+def observations() -> dict[str, np.ndarray]:
+    batch, _ = toy_batch(3, seed=5)
+    obs = [{k: batch[k][i].numpy() for k in KEYS} for i in range(3)]
+    g = np.random.default_rng(0)
+    for distinct_t, distinct_s in ((40, 150), (9, 60)):  # env-like padding: copies of points
+        o = dict(obs[0])
+        o["template"] = o["template"][g.integers(0, distinct_t, 512)]
+        o["search"] = o["search"][g.integers(0, distinct_s, 1024)]
+        o["motion"] = np.array([0.3, -0.1, 0.0, 0.05], np.float32)
+        obs.append(o)
+    env = TrackingEnv(make_toy_dataset(num_frames=3, seed=0))
+    o, _ = env.reset(seed=1)
+    obs.append(o)
+    o, *_ = env.step(np.array([0.2, 0.0, 0.0, 0.0], np.float32))
+    obs.append(o)
+    empty = dict(obs[0])
+    empty["template"] = np.zeros((512, 3), np.float32)
+    obs.append(empty)
+    return {k: np.stack([np.asarray(x[k], np.float32) for x in obs]) for k in KEYS}
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    obs = observations()
+    out: dict[str, np.ndarray] = {f"obs_{k}": v for k, v in obs.items()}
+    n = len(obs["template"])
+    for name in CHECKPOINTS:
+        model = trackers.load(name)
+        out[f"{name}/act_single"] = np.stack(
+            [model.act({k: v[i] for k, v in obs.items()}) for i in range(n)])
+        out[f"{name}/act_batch"] = model.act(obs)
+        with torch.no_grad():
+            fw = [model({k: torch.from_numpy(v[i:i + 1]) for k, v in obs.items()})
+                  for i in range(n)]
+        for key in ("proposals", "scores"):
+            out[f"{name}/{key}"] = np.concatenate([f[key].numpy() for f in fw])
+        # the fused features are large: their SHA-256 (bit-exact) instead of the values
+        z = np.ascontiguousarray(np.concatenate([f["Z"].numpy() for f in fw]))
+        out[f"{name}/Z_sha256"] = np.array(hashlib.sha256(z.tobytes()).hexdigest())
+    path = Path(__file__).with_name("tracker_reference.npz")
+    np.savez_compressed(path, **out)
+    print(path, path.stat().st_size)
+
+
+if __name__ == "__main__":
+    main()
