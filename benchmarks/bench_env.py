@@ -10,6 +10,10 @@ Prints, for the synthetic world ``--preset`` (generated into the cache if needed
   first ``--full-steps`` steps, and the warm / full-scan ratio (goal >= 20x);
 - AsyncVectorEnv n = 1, 2 (module-qualified id, default start method): total steps/s after a
   warm-up pass per worker;
+- uniform random actions over the whole action space (``--uniform-passes`` passes, best of
+  them after a first one that builds the indices), against the zero-action warm figure of the
+  same run (goal >= 0.5x), with how many crops the corridor, the whole-scan cell index and
+  direct whole-scan crops served;
 - memory of one env: the corridor cache's bytes after a full pass and the process RSS growth, on
   the ``default`` preset if that world is already generated, else on ``--preset``.
 
@@ -33,11 +37,23 @@ def _rss_mb() -> float:
 CPU: dict[str, float] = {}
 
 
-def zero_pass(env, max_steps: int | None = None, seed: int | None = 0) -> tuple[int, float]:
-    """Run every tracklet once with zero actions (or stop after ``max_steps``) -> steps, wall s.
-    The process CPU seconds of the pass are left in ``CPU["last"]``."""
+def zero_pass(
+    env,
+    max_steps: int | None = None,
+    seed: int | None = 0,
+    rng: np.random.Generator | None = None,
+) -> tuple[int, float]:
+    """Run every tracklet once with zero actions, or uniform random ones over the whole action
+    space when ``rng`` is given (or stop after ``max_steps``) -> steps, wall s. The process CPU
+    seconds of the pass are left in ``CPU["last"]``."""
     u = env.unwrapped
-    action = np.zeros(4, np.float32)
+    zero = np.zeros(4, np.float32)
+    low, high = env.action_space.low, env.action_space.high
+    # drawn before the pass: the benchmark times the env, not the generator
+    draws = None
+    if rng is not None:
+        n = sum(u.tracklet_lengths) if max_steps is None else max_steps
+        draws = rng.uniform(low, high, (n, 4)).astype(np.float32)
     steps = 0
     start = time.perf_counter()
     cpu0 = time.process_time()
@@ -45,6 +61,7 @@ def zero_pass(env, max_steps: int | None = None, seed: int | None = 0) -> tuple[
         env.reset(seed=seed if i == 0 else None, options={"tracklet": i})
         done = False
         while not done:
+            action = zero if draws is None else draws[steps]
             _, _, term, trunc, _ = env.step(action)
             done = term or trunc
             steps += 1
@@ -53,6 +70,23 @@ def zero_pass(env, max_steps: int | None = None, seed: int | None = 0) -> tuple[
                 return steps, time.perf_counter() - start
     CPU["last"] = time.process_time() - cpu0
     return steps, time.perf_counter() - start
+
+
+def _cache_line(u) -> str:
+    """What served the crops and the cache's size (also for the env before its whole-scan cell
+    index, ``cache_stats`` without ``cell_index``, so a before / after comparison runs one
+    script)."""
+    stats = dict(u.cache_stats)
+    return (
+        f"  crops served by the corridor: {stats['corridor']}, by the whole-scan cell index: "
+        f"{stats.get('cell_index', 0)}, direct whole-scan crops: {stats['full_scan']}; "
+        f"cache {_cache_mib(u):.1f} MiB"
+    )
+
+
+def _cache_mib(u) -> float:
+    nbytes = getattr(u, "cache_bytes", None)
+    return (u._cache_bytes if nbytes is None else nbytes) / 2**20
 
 
 def vector_rate(kwargs: dict, n: int, steps: int) -> float:
@@ -87,9 +121,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--full-steps", type=int, default=300)
     parser.add_argument("--vector-steps", type=int, default=1000)
+    parser.add_argument("--uniform-passes", type=int, default=3)
     args = parser.parse_args(argv)
     if args.quick:
         args.repeats, args.full_steps, args.vector_steps = 1, 100, 200
+        args.uniform_passes = 2
 
     import gymnasium as gym
 
@@ -119,11 +155,22 @@ def main(argv: list[str] | None = None) -> int:
         f"warm cache (zero action, gymnasium.make): {warm:9.0f} steps/s  "
         f"({warm_cpu:.0f} per CPU-second)"
     )
-    stats = dict(u.cache_stats)
+    print(_cache_line(u))
+
+    uni_env = gym.make("pointtrack/Synthetic-v0", **kwargs)
+    rng = np.random.default_rng(args.seed)
+    rates = []
+    for _ in range(max(2, args.uniform_passes)):
+        steps, secs = zero_pass(uni_env, rng=rng)
+        rates.append((steps / secs, steps / CPU["last"]))
+    cold_uni = rates[0][0]
+    uniform, uniform_cpu = max(r[0] for r in rates[1:]), max(r[1] for r in rates[1:])
     print(
-        f"  crops served by the corridor: {stats['corridor']}, whole-scan fallbacks: "
-        f"{stats['full_scan']}; cache {u._cache_bytes / 2**20:.1f} MiB"
+        f"uniform random actions (whole action space): {uniform:9.0f} steps/s warm "
+        f"({uniform_cpu:.0f} per CPU-second), {cold_uni:.0f} on the first pass; "
+        f"{uniform / warm:.2f}x the zero-action warm rate (goal >= 0.5x)"
     )
+    print(_cache_line(uni_env.unwrapped))
 
     full_env = gym.make("pointtrack/Synthetic-v0", corridor_m=None, **kwargs)
     full, full_cpu = 0.0, 0.0
@@ -152,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     mu = menv.unwrapped
     print(
         f"memory of one env ({mem_preset}, split {args.split}, after a full pass): corridor "
-        f"cache {mu._cache_bytes / 2**20:.1f} MiB, process RSS +{_rss_mb() - rss0:.1f} MiB, "
+        f"cache {_cache_mib(mu):.1f} MiB, process RSS +{_rss_mb() - rss0:.1f} MiB, "
         f"pickled env {len(__import__('pickle').dumps(mu)) / 1024:.1f} KiB"
     )
     return 0

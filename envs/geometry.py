@@ -20,7 +20,6 @@ import torch
 __all__ = [
     "apply_offset",
     "apply_offset_pair",
-    "apply_offset_torch",
     "box_corners",
     "box_corners_torch",
     "box_to_world",
@@ -557,13 +556,3 @@ def box_corners_torch(boxes: torch.Tensor) -> torch.Tensor:
     """Torch twin of :func:`box_corners`: ``(..., 7)`` -> ``(..., 8, 3)``."""
     signs = torch.as_tensor(_CORNER_SIGNS, dtype=boxes.dtype, device=boxes.device)
     return box_to_world_torch(boxes[..., None, 3:6] * signs, boxes)
-
-
-def apply_offset_torch(ref_boxes: torch.Tensor, offsets: torch.Tensor) -> torch.Tensor:
-    """Torch twin of :func:`apply_offset`: ``(..., 7)``, ``(..., 4)`` -> ``(..., 7)``."""
-    c, s = torch.cos(ref_boxes[..., 6]), torch.sin(ref_boxes[..., 6])
-    x = ref_boxes[..., 0] + c * offsets[..., 0] - s * offsets[..., 1]
-    y = ref_boxes[..., 1] + s * offsets[..., 0] + c * offsets[..., 1]
-    z = ref_boxes[..., 2] + offsets[..., 2]
-    yaw = torch.remainder(ref_boxes[..., 6] + offsets[..., 3] + math.pi, 2 * math.pi) - math.pi
-    return torch.cat([torch.stack([x, y, z], -1), ref_boxes[..., 3:6], yaw[..., None]], -1)

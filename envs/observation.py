@@ -21,6 +21,21 @@ TEMPLATE_SCALE = 1.25
 SEARCH_SCALE = 1.25
 SEARCH_OFFSET_M = 2.0
 
+PREVIOUS_SEARCH_CHANNELS = ("x", "y", "z", "time", "mask")
+"""Columns of the opt-in ``previous_search`` observation (M2-Track's input layout: Zheng et al.,
+"Beyond 3D Siamese Tracking: A Motion-Centric Paradigm for 3D Single Object Tracking in Point
+Clouds", CVPR 2022): the previous frame's points, their time, their previous-box mask."""
+PREVIOUS_TIME = 0.0
+CURRENT_TIME = 0.1
+"""Time channel of the previous frame's points, and the value M2-Track gives the current
+frame's (``search``) points when a tracker merges the two."""
+MASK_GT = (0.0, 1.0)
+MASK_PREDICTED = (0.2, 0.8)
+CURRENT_MASK = 0.5
+"""Previous-box mask values ``(outside, inside)`` when the previous box is the ground truth
+and when it is a prediction (M2-Track's softened prior), and the value M2-Track gives the
+current frame's points."""
+
 _LOW_HALF = 0 if sys.byteorder == "little" else 1  # of a uint64 viewed as two uint32
 _HIGH_SHIFT = np.uint64(32)
 _SIGNS = np.array([[1.0], [-1.0]])  # (s, -s) as s * _SIGNS: exact, cheaper than np.array

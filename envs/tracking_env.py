@@ -1,46 +1,65 @@
 """The Gymnasium environment for 3D single-object tracking in LiDAR point clouds.
 
-One episode is one tracklet: the target's box is given in frame 0, and at every later frame the
-agent moves the box. See :class:`TrackingEnv` for the full contract and ``DESIGN.md`` ("The
-environment contract"). The registered ids (``pointtrack/Synthetic-v0``, ``pointtrack/KITTI-v0``)
-are built by :func:`make_synthetic_env` and :func:`make_kitti_env`. :func:`make_toy_dataset`
-builds a tiny in-memory dataset (a box-shaped target moving along a line, plus clutter) for tests
-and examples.
+One episode is one tracklet (or a clip of one): the target's box is given in the first frame,
+and at every later frame the agent moves the box. See :class:`TrackingEnv` for the full contract.
+The registered ids (``pointtrack/Synthetic-v0``, ``pointtrack/KITTI-v0``) are built by
+:func:`make_synthetic_env` and :func:`make_kitti_env`.
+
+Around the env: :mod:`envs.scan_cache` (where crops come from: the per-tracklet cell indices),
+:mod:`envs.rewards` (the named rewards and their registry), :mod:`envs.observation` (cropping
+and resampling), :mod:`envs.data.toy` (:func:`make_toy_dataset`, re-exported here).
 """
 
 from __future__ import annotations
 
 import math
 import os
-from collections import OrderedDict
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+import warnings
+from collections.abc import Sequence
+from types import MappingProxyType
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from envs.data.toy import ToyDataset, make_toy_dataset
 from envs.data.tracklet import Tracklet
-from envs.geometry import apply_offset_pair, iou_bev, iou_pair, offset_between_pair
+from envs.geometry import apply_offset_pair, iou_pair, offset_between_pair
 from envs.observation import (
+    MASK_GT,
+    MASK_PREDICTED,
+    PREVIOUS_SEARCH_CHANNELS,
+    PREVIOUS_TIME,
     SEARCH_OFFSET_M,
     SEARCH_SCALE,
     SEARCH_SIZE,
     TEMPLATE_SCALE,
     TEMPLATE_SIZE,
-    box_frame,
-    crop_box_frame,
     crop_extents,
-    crop_parts,
     extent_threshold,
+    in_extent,
     resample_into,
 )
+from envs.rewards import (
+    ROUND_OFF,
+    RewardFn,
+    available_rewards,
+    check_reward,
+    finite_reward,
+    make_reward,
+    snap_iou,
+)
+from envs.scan_cache import CropCache, ScanTransform, TrackletScans, crop_canonical
 
 __all__ = [
     "DEFAULT_MAX_ACTION",
+    "OBSERVATION_KEYS",
+    "OPTIONAL_OBSERVATION_KEYS",
     "REFERENCE_MODES",
+    "RESET_OPTIONS",
     "REWARDS",
+    "ROUND_OFF",
     "SAMPLING_MODES",
     "TEMPLATE_MODES",
     "ScanTransform",
@@ -54,10 +73,15 @@ __all__ = [
 
 TEMPLATE_MODES = ("first_and_previous", "first", "previous", "all")
 REFERENCE_MODES = ("prediction", "previous_gt", "current_gt")
-REWARDS = ("iou_3d", "iou_bev", "neg_center_error")
+REWARDS = available_rewards()
+"""The built-in reward names (:func:`envs.rewards.available_rewards` also lists registered ones)."""
 SAMPLING_MODES = ("sequential", "random")
-RESET_OPTIONS = ("tracklet",)
+RESET_OPTIONS = ("tracklet", "category", "start_frame", "max_steps", "episode_seed")
 DEFAULT_MAX_ACTION = (5.0, 5.0, 3.0, math.pi)
+OBSERVATION_KEYS = ("template", "search", "size", "motion")
+"""The default observation (always present)."""
+OPTIONAL_OBSERVATION_KEYS = ("previous_search",)
+"""Opt-in observation keys (``observation_keys=``)."""
 
 POINT_BOUND_M = 100.0
 """Bound of the point observation spaces (metres, box frame); crops never reach it for boxes
@@ -67,276 +91,6 @@ MOTION_BOUND_M = 100.0
 TEMPLATE_ENLARGEMENT = (TEMPLATE_SCALE, 0.0)
 SEARCH_ENLARGEMENT = (SEARCH_SCALE, SEARCH_OFFSET_M)
 """``(scale, offset_m)`` of the template and search crops."""
-ROUND_OFF = 1e-9
-"""IoUs above ``1 - ROUND_OFF`` are reported as 1 and centre errors below it (metres) as 0: the
-exact ground-truth offset reproduces the ground-truth box only up to float round-off (~1e-15),
-and OPE's last Success threshold (IoU >= 1) and first Precision threshold (error <= 0) are exact.
-"""
-
-ScanTransform = Callable[[np.ndarray, str, int], np.ndarray]
-"""``scan_transform(points (N, 4) float32, tracklet_id, scene_frame) -> (N', 4) float32``: applied
-to the whole scan of a frame before any cropping (the weather hook). Must be picklable and
-deterministic given ``(tracklet_id, scene_frame)`` (corrupted scans are cached)."""
-
-
-# --------------------------------------------------------------------------- spatial cache
-
-
-def _cells(xy: np.ndarray, cell_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """Global grid cell indices ``(ix, iy)`` int64 of points ``(N, 2+)`` (cells of ``cell_m``)."""
-    ix = np.floor(xy[:, 0].astype(np.float64) / cell_m).astype(np.int64)
-    iy = np.floor(xy[:, 1].astype(np.float64) / cell_m).astype(np.int64)
-    return ix, iy
-
-
-def _canonical(local: np.ndarray, world_xy: np.ndarray, cell_m: float) -> np.ndarray:
-    """Reorder a crop (rows in scan order) into the canonical order: by global cell ``(ix, iy)``,
-    ties in scan order. Both cache paths produce this order, so they agree exactly."""
-    if len(local) < 2:
-        return local
-    ix, iy = _cells(world_xy, cell_m)
-    return local[np.lexsort((iy, ix))]
-
-
-def crop_canonical(
-    points: np.ndarray, box: np.ndarray, scale: float, offset_m: float, cell_m: float = 1.0
-) -> np.ndarray:
-    """What the env crops: ``crop_box_frame(points[:, :3], box, scale, offset_m)`` ``(M, 3)``
-    float32, rows in the canonical order (by global ``cell_m`` grid cell of the world x, y;
-    ties in scan order) that the corridor cache produces without sorting."""
-    xyz = np.asarray(points)[:, :3]
-    # carry the world x, y through the crop (extra columns pass unchanged) for the order
-    cropped = crop_box_frame(np.concatenate([xyz, xyz[:, :2]], axis=1), box, scale, offset_m)
-    return _canonical(cropped[:, :3], cropped[:, 3:5], cell_m)
-
-
-class _Corridor:
-    """The cells of a global xy grid near a tracklet's trajectory.
-
-    Every box of the tracklet is treated as a position a reference box may take (boxes are in
-    their own frame's LiDAR frame; a prediction that ignores ego motion stays near them). A cell
-    is in the corridor when it overlaps the square of half side ``r + margin_m`` around a box
-    centre, ``r`` the circumscribed radius of the box's search region. Covers ``nx * ny`` cells
-    from global cell ``(ix0, iy0)``.
-    """
-
-    def __init__(self, boxes: np.ndarray, size0: np.ndarray, margin_m: float, cell_m: float):
-        sizes = np.maximum(boxes[:, 3:5], size0[None, :2])
-        half = sizes * (0.5 * SEARCH_SCALE) + SEARCH_OFFSET_M
-        reach = np.hypot(half[:, 0], half[:, 1]) + margin_m  # (T,)
-        lo = np.floor((boxes[:, :2] - reach[:, None]) / cell_m).astype(np.int64)
-        hi = np.floor((boxes[:, :2] + reach[:, None]) / cell_m).astype(np.int64)
-        self.cell = float(cell_m)
-        self.ix0, self.iy0 = (int(v) for v in lo.min(0))
-        self.nx = int(hi[:, 0].max()) - self.ix0 + 1
-        self.ny = int(hi[:, 1].max()) - self.iy0 + 1
-        occ = np.zeros((self.nx, self.ny), dtype=bool)
-        for (a0, b0), (a1, b1) in zip(lo, hi, strict=True):
-            occ[a0 - self.ix0 : a1 - self.ix0 + 1, b0 - self.iy0 : b1 - self.iy0 + 1] = True
-        self.occupancy = occ
-        # summed-area table (Python lists: a query reads 4 entries, no numpy call)
-        sat = np.zeros((self.nx + 1, self.ny + 1), dtype=np.int64)
-        sat[1:, 1:] = occ.cumsum(0).cumsum(1)
-        self._sat = sat.tolist()
-        # rough footprint (the SAT's Python ints ~32 B each)
-        self.nbytes = occ.nbytes + 40 * sat.size
-
-    def cell_ranges(
-        self, box: np.ndarray, enlargements: Sequence[tuple[float, float]]
-    ) -> list[tuple[int, int, int, int] | None]:
-        """For every ``(scale, offset_m)``: the corridor-local cells ``(x0, x1, y0, y1)``
-        covering the xy bound of ``box`` so enlarged, or ``None`` when part of it lies outside
-        the corridor."""
-        bx, by, _, bl, bw, _, yaw = box.tolist()
-        c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
-        sat, cell, out = self._sat, self.cell, []
-        for scale, offset_m in enlargements:
-            hl = 0.5 * scale * bl + offset_m
-            hw = 0.5 * scale * bw + offset_m
-            ex = c * hl + s * hw + 1e-3  # pad: a bound only; the exact crop follows
-            ey = s * hl + c * hw + 1e-3
-            x0 = math.floor((bx - ex) / cell) - self.ix0
-            x1 = math.floor((bx + ex) / cell) - self.ix0
-            y0 = math.floor((by - ey) / cell) - self.iy0
-            y1 = math.floor((by + ey) / cell) - self.iy0
-            inside = x0 >= 0 and y0 >= 0 and x1 < self.nx and y1 < self.ny
-            if inside:  # and every cell occupied
-                occupied = sat[x1 + 1][y1 + 1] - sat[x0][y1 + 1] - sat[x1 + 1][y0] + sat[x0][y0]
-                inside = occupied == (x1 - x0 + 1) * (y1 - y0 + 1)
-            out.append((x0, x1, y0, y1) if inside else None)
-        return out
-
-
-@dataclass
-class _FrameIndex:
-    """Corridor points of one frame in canonical order (by cell, row-major; ties in scan
-    order), as coordinate rows (what :func:`envs.observation.box_frame` reads), with the first
-    point of every cell of the corridor's grid: the points of cells ``y0..y1`` of grid row
-    ``x`` are ``xyz[:, starts[x, y0] : starts[x, y1 + 1]]`` (``starts[x, ny]`` ends the row)."""
-
-    xyz: np.ndarray  # (3, M) float32
-    starts: np.ndarray  # (nx, ny + 1) int32
-    target_points: int  # scan points inside the frame's ground-truth box
-
-    @property
-    def nbytes(self) -> int:
-        return self.xyz.nbytes + self.starts.nbytes
-
-
-BRIDGE_POINTS = 64
-"""Consecutive row runs of a corridor gather are joined when at most this many points lie
-between them: a separate run costs a slice and a concatenated piece (~1 us), a gathered point
-~20 ns of array work, and the points in between (cells outside the query) never pass the exact
-crop."""
-
-
-class _TrackletScans:
-    """Per-tracklet crops: lazily built per-frame corridor indices, a whole-scan fallback.
-
-    Every crop equals ``crop_box_frame(whole scan, box, scale, offset_m)`` up to the row order,
-    which is canonical (see :func:`_canonical`) on both paths, so the cache never changes an
-    observation. With ``corridor=None`` every crop reads the whole scan (the no-cache baseline).
-    """
-
-    def __init__(
-        self,
-        tracklet: Tracklet,
-        transform: ScanTransform | None,
-        corridor: _Corridor | None,
-        cell_m: float,
-    ):
-        self.tracklet = tracklet
-        self.transform = transform
-        self.corridor = corridor
-        self.cell = float(cell_m)
-        self.frames: dict[int, _FrameIndex] = {}
-        self.nbytes = 0 if corridor is None else corridor.nbytes
-        self._full: OrderedDict[int, np.ndarray] = OrderedDict()  # last whole scans (fallback)
-        self._thresholds: dict[tuple[float, ...], np.ndarray] = {}
-        self.first_crop: np.ndarray | None = None  # frame 0's template crop, set by the env
-
-    def scan(self, t: int) -> np.ndarray:
-        """Whole (transformed) scan of the tracklet's ``t``-th frame ``(N, 4)`` float32."""
-        pts = self._full.get(t)
-        if pts is not None:
-            return pts
-        pts = self._load(t)
-        if self.corridor is not None:  # keep a couple for the fallback
-            self._full[t] = pts
-            if len(self._full) > 2:
-                self._full.popitem(last=False)
-        return pts
-
-    def _load(self, t: int) -> np.ndarray:
-        tr = self.tracklet
-        pts = tr.points_with_intensity(t)
-        if self.transform is not None:
-            pts = np.asarray(
-                self.transform(pts, tr.tracklet_id, int(tr.frames[t])), dtype=np.float32
-            )
-            if pts.ndim != 2 or pts.shape[1] < 3:
-                raise ValueError(
-                    f"scan_transform returned shape {pts.shape} for {tr.tracklet_id} frame "
-                    f"{int(tr.frames[t])}; expected (N, 4)"
-                )
-        return pts
-
-    def index(self, t: int) -> _FrameIndex:
-        idx = self.frames.get(t)
-        if idx is None:
-            idx = self._build(t)
-            self.frames[t] = idx
-            self.nbytes += idx.nbytes
-        return idx
-
-    def _build(self, t: int) -> _FrameIndex:
-        cor = self.corridor
-        xyz = self.scan(t)[:, :3]  # kept for a possible fallback in this episode
-        ix, iy = _cells(xyz, cor.cell)
-        ix -= cor.ix0
-        iy -= cor.iy0
-        inside = (ix >= 0) & (ix < cor.nx) & (iy >= 0) & (iy < cor.ny)
-        key = np.where(inside, ix * cor.ny + iy, 0)
-        keep = inside & cor.occupancy.reshape(-1)[key]  # queries never read other cells
-        sel = np.flatnonzero(keep)
-        key = key[sel]
-        perm = np.argsort(key, kind="stable")
-        rows = np.ascontiguousarray(xyz[sel[perm]].T, dtype=np.float32)
-        firsts = np.searchsorted(key[perm], np.arange(cor.nx * cor.ny + 1))
-        cells = np.arange(cor.nx)[:, None] * cor.ny + np.arange(cor.ny + 1)
-        starts = firsts[cells].astype(np.int32)
-        gt = np.asarray(self.tracklet.boxes[t], dtype=np.float64)
-        target = len(crop_box_frame(rows.T, gt)) if rows.shape[1] else 0
-        return _FrameIndex(rows, starts, target)
-
-    def _full_crop(self, t: int, box: np.ndarray, scale: float, offset_m: float) -> np.ndarray:
-        return crop_canonical(self.scan(t)[:, :3], box, scale, offset_m, self.cell)
-
-    def crops(
-        self, box: np.ndarray, frames: Sequence[int], enlargements: tuple[tuple[float, float], ...]
-    ) -> tuple[list[np.ndarray], int]:
-        """The points of every frame ``frames[i]`` in ``box`` enlarged by ``enlargements[i]``
-        ``(scale, offset_m)``, in its box frame ``(M, 3)`` float32 (canonical order); and how
-        many of them the corridor served. The corridor's crops share one gather, one box-frame
-        transform and one selection (numpy's per-call cost dominates these small sets)."""
-        if self.corridor is None:
-            cells = [None] * len(frames)
-        else:
-            cells = self.corridor.cell_ranges(box, enlargements)
-        out: list[np.ndarray | None] = [None] * len(frames)
-        pieces: list[np.ndarray] = []
-        served: list[int] = []  # requests the corridor serves, in gathering order
-        widths: list[int] = []  # their numbers of gathered points
-        for i, (t, rect) in enumerate(zip(frames, cells, strict=True)):
-            if rect is None:
-                out[i] = self._full_crop(t, box, *enlargements[i])
-                continue
-            x0, x1, y0, y1 = rect
-            idx = self.index(t)
-            # one run of points per grid row: columns y0 and y1 + 1 of starts (a strided view);
-            # gaps of at most BRIDGE_POINTS points between runs are bridged
-            runs = idx.starts[x0 : x1 + 1, y0 : y1 + 2 : y1 + 1 - y0].tolist()
-            width, (start, stop) = 0, runs[0]
-            for a, b in runs[1:]:
-                if a - stop > BRIDGE_POINTS:
-                    pieces.append(idx.xyz[:, start:stop])
-                    width += stop - start
-                    start = a
-                stop = b
-            pieces.append(idx.xyz[:, start:stop])
-            served.append(i)
-            widths.append(width + stop - start)
-        if served:
-            xyz = pieces[0] if len(pieces) == 1 else np.concatenate(pieces, axis=1)
-            if len(served) < len(frames):
-                enlargements = tuple(enlargements[i] for i in served)
-            threshold = self._threshold(box, enlargements)
-            if len(served) > 1:  # each gathered point gets its request's extent
-                threshold = threshold.repeat(widths, axis=1)
-            crops = crop_parts(box_frame(xyz, box), threshold, widths)
-            for i, crop in zip(served, crops, strict=True):
-                out[i] = crop
-        return out, len(served)
-
-    def _threshold(
-        self, box: np.ndarray, enlargements: tuple[tuple[float, float], ...]
-    ) -> np.ndarray:
-        """:func:`extent_threshold` of the float32 crops, memoised: a tracklet's boxes take few
-        sizes (the predictions all have frame 0's)."""
-        key = (*box[3:6].tolist(), enlargements)
-        threshold = self._thresholds.get(key)
-        if threshold is None:
-            threshold = extent_threshold(crop_extents(box, enlargements), np.float32)
-            self._thresholds[key] = threshold
-        return threshold
-
-    def target_points(self, t: int) -> int:
-        if self.corridor is None:
-            return len(crop_box_frame(self.scan(t)[:, :3], self.tracklet.boxes[t]))
-        return self.index(t).target_points
-
-
-# --------------------------------------------------------------------------- the environment
 
 
 def _is_pathlike(x: Any) -> bool:
@@ -344,13 +98,23 @@ def _is_pathlike(x: Any) -> bool:
 
 
 class TrackingEnv(gym.Env):
-    """3D single-object tracking in LiDAR point clouds, one tracklet per episode.
+    """3D single-object tracking in LiDAR point clouds, one tracklet (or a clip of one) per
+    episode.
 
     ## Description
-    The target's box is given in the first frame of a tracklet; at every later frame the agent
+    The target's box is given in the first frame of the episode; at every later frame the agent
     moves the box (P2B / BAT / GPT act as policies; OPE Success / Precision is the step-wise
     evaluation). Boxes are ``(x, y, z, l, w, h, yaw)`` in each frame's LiDAR frame (metres,
     radians, geometric centre); observations are in box-local frames.
+
+    ## Action Space
+    ``Box(-max_action, max_action, (4,), float32)``: ``(dx, dy, dz, dyaw)`` in metres and radians
+    in the reference box's frame; new box = reference box moved by ``R(yaw_ref) @ (dx, dy, dz)``,
+    ``yaw + dyaw``, with the given box's size. Default ``max_action = (5, 5, 3, pi)``. Wrap in
+    ``gymnasium.wrappers.RescaleAction`` for a ``[-1, 1]`` space. A NaN/inf action raises
+    ``ValueError``; an out-of-range action is clipped and ``info["action_clipped"]`` is set.
+    Actions are used in float64, so the exact ground-truth offset yields the ground-truth box
+    (IoU and centre error within 1e-9 of 1 and 0 are reported as exactly 1 and 0).
 
     ## Observation Space
     ``Dict`` of float32 arrays (fresh arrays on every call):
@@ -358,51 +122,77 @@ class TrackingEnv(gym.Env):
     - ``template (512, 3)``: target points, see the template modes below (box frames), m;
     - ``search (1024, 3)``: the current frame's points inside the reference box scaled 1.25 plus
       2 m on every axis, in the reference box frame, m;
-    - ``size (3,)``: the target's ``l, w, h`` (frame 0), m;
+    - ``size (3,)``: the target's ``l, w, h`` (the given box's), m;
     - ``motion (4,)``: the last predicted motion ``(dx, dy, dz, dyaw)``: the offset from the
       prediction two frames back to the last one, in the former's frame (zeros at the first
       step), so motion-aware trackers stay stateless.
 
-    Template modes (``template_mode``): ``"first_and_previous"`` (default; 256 points from frame
-    0 cropped with the ground-truth box scaled 1.25 plus 256 from the previous frame cropped with
-    the previous prediction scaled 1.25, each in its own box frame, concatenated), ``"first"``
-    (512 from frame 0), ``"previous"`` (512 from the previous frame), ``"all"`` (the crops of
-    frame 0 and of every previous prediction, each in its own box frame, merged and resampled to
-    512 — P2B's "all previous results"). Point sets are resampled with ``self.np_random``
-    (duplicates when too few, a random subset when too many), or, when ``episode_seed`` is set,
-    with a generator seeded by ``(episode_seed, tracklet id)`` at every reset; an empty set gives
-    zeros and ``info["empty_template"]`` / ``info["empty_search"]`` say so.
+    Opt-in (``observation_keys=(*OBSERVATION_KEYS, "previous_search")``), the input of
+    motion-centric trackers (M2-Track, Zheng et al., CVPR 2022):
 
-    ## Action Space
-    ``Box(-max_action, max_action, (4,), float32)``: ``(dx, dy, dz, dyaw)`` in metres and radians
-    in the reference box's frame; new box = reference box moved by ``R(yaw_ref) @ (dx, dy, dz)``,
-    ``yaw + dyaw``, with frame 0's size. Default ``max_action = (5, 5, 3, pi)``. Wrap in
-    ``gymnasium.wrappers.RescaleAction`` for a ``[-1, 1]`` space. A NaN/inf action raises
-    ``ValueError``; an out-of-range action is clipped and ``info["action_clipped"]`` is set.
-    Actions are used in float64, so the exact ground-truth offset yields the ground-truth box
-    (IoU and centre error within 1e-9 of 1 and 0 are reported as exactly 1 and 0).
+    - ``previous_search (1024, 5)``: the previous frame's points cropped and transformed like the
+      search region (around the same reference box, same enlargement, same frame), resampled
+      likewise, with columns ``x, y, z, time, mask`` (``envs.observation.PREVIOUS_SEARCH_
+      CHANNELS``): ``time`` is ``PREVIOUS_TIME`` (0; M2-Track gives the current frame's points
+      ``CURRENT_TIME`` = 0.1), ``mask`` says whether the point lies in the reference box scaled
+      1.25: 1 / 0 when that box is the previous frame's ground truth (the given box at the first
+      step, or ``reference="previous_gt"``), else M2-Track's softened 0.8 / 0.2; zeros when the
+      crop is empty (``info["empty_previous_search"]``).
+
+    Template modes (``template_mode``): ``"first_and_previous"`` (default; 256 points from the
+    first frame cropped with the given box scaled 1.25 plus 256 from the previous frame cropped
+    with the previous prediction scaled 1.25, each in its own box frame, concatenated),
+    ``"first"`` (512 from the first frame), ``"previous"`` (512 from the previous frame),
+    ``"all"`` (the crops of the first frame and of every previous prediction, each in its own box
+    frame, merged and resampled to 512 — P2B's "all previous results"). Point sets are resampled
+    with ``self.np_random`` (duplicates when too few, a random subset when too many), or, when an
+    episode seed is set, with a generator seeded by ``(episode_seed, tracklet id)`` at every
+    reset; an empty set gives zeros and ``info["empty_template"]`` / ``info["empty_search"]``
+    say so. Cropped point sets are the points ``envs.observation.crop_box_frame`` selects, rows
+    in a canonical order (see :func:`envs.scan_cache.crop_canonical`).
 
     ## Rewards
-    ``"iou_3d"`` (default, oriented 3D IoU of the new box with the ground truth), ``"iou_bev"``,
-    ``"neg_center_error"`` (minus the centre distance, metres), or a picklable callable
-    ``reward(pred_box (7,), gt_box (7,)) -> float``.
+    ``reward``: a name of :mod:`envs.rewards` — ``"iou_3d"`` (default: the oriented 3D IoU of the
+    new box with the ground truth), ``"iou_bev"``, ``"neg_center_error"`` (minus the centre
+    distance, m), ``"iou_delta"`` (IoU gain over keeping the previous box), ``"success"`` (1 if
+    the IoU reaches ``reward_kwargs["threshold"]``, default 0.5), or one registered with
+    :func:`envs.rewards.register_reward` — built with ``reward_kwargs``; or a picklable callable
+    ``reward(pred (7,), gt (7,), prev_pred (7,), step, info) -> float`` (``info``: this step's
+    info, read-only; a non-finite value raises ``ValueError``).
 
     ## Starting State
     ``reset`` starts the next tracklet: ``sampling="sequential"`` visits the tracklets in order
     (``tracklet_order``, default all, wrapping around), ``"random"`` draws one with
-    ``self.np_random``; ``options={"tracklet": i}`` (index or tracklet id) picks one. Reset with a
-    seed restarts the sequential order. The first observation is for frame 1; reset ``info``
-    holds ``tracklet``, ``category``, ``observed``, ``init_box`` (frame 0's ground truth),
-    ``empty_template``, ``empty_search``.
+    ``self.np_random``. Reset with a seed restarts the sequential order. The episode's first
+    frame is ``start_frame`` (default 0; its ground-truth box is the given box) and the first
+    observation is for the frame after it. Reset ``info``: ``tracklet``, ``category``,
+    ``observed``, ``init_box`` (the given box), ``start_frame``, ``empty_template``,
+    ``empty_search`` (plus ``weather``, see the step info).
+
+    ``reset(options=...)`` (any other key raises ``ValueError`` naming the valid ones; ``None``
+    values mean "not given"):
+
+    - ``tracklet``: an index into ``self.tracklets`` or a tracklet id;
+    - ``category``: a category name or a list of them: the next tracklet (sequential: in
+      ``tracklet_order`` from the cursor on; random: uniformly among them) of those categories;
+    - ``start_frame``: an index in the tracklet (``0 .. T-2``) or ``"random"`` (uniform over
+      them, drawn with ``self.np_random``);
+    - ``max_steps``: the clip length, at least 1;
+    - ``episode_seed``: this episode's resampling seed (overrides the env's ``episode_seed``).
+
+    The constructor's ``start_frame``, ``max_steps`` and ``episode_seed`` are the defaults of
+    the options of the same names; ``categories`` and ``sampling`` / ``tracklet_order`` play
+    that part for ``category`` and ``tracklet``.
 
     ## Episode End
-    ``terminated`` at the tracklet's last frame (the final observation repeats the last one); a
-    lost target never ends an episode (OPE tracks to the end); ``truncated`` is always ``False``
-    (only a ``TimeLimit`` wrapper truncates). ``step`` before ``reset`` or after the end raises.
+    ``terminated`` at the tracklet's last frame (the final observation repeats the last one).
+    ``truncated`` when a clip (``max_steps``) ends before the tracklet does; its final
+    observation is the next frame's real one (for bootstrapping). A lost target never ends an
+    episode (OPE tracks to the end). ``step`` before ``reset`` or after the end raises.
 
     ## Step info
     ``iou``, ``center_error`` (m), ``pred_box`` (7,), ``gt_box`` (7,), ``category``,
-    ``observed``, ``tracklet`` (id), ``frame`` (index in the tracklet, 1..T-1), ``target_points``
+    ``observed``, ``tracklet`` (id), ``frame`` (index in the tracklet), ``target_points``
     (scan points in the ground-truth box), ``action_clipped``, ``empty_template``,
     ``empty_search``; plus ``weather`` when the scan transform has an ``info`` attribute.
 
@@ -410,30 +200,31 @@ class TrackingEnv(gym.Env):
     - ``dataset``: anything with ``.tracklets`` (``envs.data.KittiTracking``,
       :func:`make_toy_dataset`), or a KITTI-layout root folder (then ``split`` is used).
     - ``setting``: a class-agnostic setting name (``"kitti-1"``...) or ``envs.data.Setting``;
-      ``observed`` flags follow it; by default its observed and unseen categories are used.
+      ``observed`` flags follow it; by default its observed and unseen categories are used. An
+      env of split ``train`` whose categories include the setting's unseen ones warns (at
+      construction) naming them: training on them breaks the class-agnostic protocol.
     - ``categories``: restrict to these categories (within the setting if one is given).
     - ``split``: the split to read when ``dataset`` is a folder; otherwise only checked against
       ``dataset.split`` and quoted in errors.
     - ``sampling``, ``template_mode``, ``reference`` (``"prediction"`` default, ``"previous_gt"``,
-      ``"current_gt"``: the box the search region is cropped around, Table 7 of ``002_…``),
-      ``reward``, ``max_action``, ``render_mode`` (``None`` or ``"rgb_array"``).
+      ``"current_gt"``: the box the search region is cropped around), ``reward``,
+      ``reward_kwargs``, ``max_action``, ``render_mode`` (``None`` or ``"rgb_array"``).
+    - ``start_frame``, ``max_steps``: the defaults of the reset options (``0``, ``None``: whole
+      tracklets).
     - ``episode_seed``: ``None`` (default: episodes draw from ``self.np_random`` one after the
       other) or an int: every episode draws its resampling from its own generator seeded by
       ``(episode_seed, tracklet id)``, so what it observes for given actions depends only on its
-      tracklet — not on the episodes before it, the tracklet order or filter, or the vector
-      sub-env that runs it. Settable between episodes (``training.evaluate`` sets it).
-    - ``scan_transform``: see :data:`ScanTransform` (the weather hook). If it has an ``info``
-      attribute, that value is reported as ``info["weather"]``.
-    - ``corridor_m``: margin (m) of the per-tracklet corridor cache: each frame of a tracklet
-      keeps, indexed by ``cell_m`` xy cells, the scan points within reach of any of the
-      tracklet's boxes (search region plus ``corridor_m``); a crop reads only the cells it
-      covers. Crops leaving the corridor fall back to the whole scan, so the cache never changes
-      an observation. ``None``: crop whole scans every step. ``cache_mb``: memory budget of the
-      cache (LRU over tracklets).
-
-    Cropped point sets are the points ``envs.observation.crop_box_frame`` selects, with rows in
-    a canonical order (by global ``cell_m`` xy cell, then scan order; see
-    :func:`crop_canonical`) that the cached and whole-scan paths share.
+      tracklet (and start frame) — not on the episodes before it, the tracklet order or filter,
+      or the vector sub-env that runs it. Settable between episodes (``training.evaluate`` sets
+      it).
+    - ``scan_transform``: see :data:`envs.scan_cache.ScanTransform` (the weather hook). If it has
+      an ``info`` attribute, that value is reported as ``info["weather"]``.
+    - ``corridor_m``: margin (m) of the per-tracklet corridor of the crop cache
+      (:mod:`envs.scan_cache`): each frame keeps, indexed by ``cell_m`` xy cells, the scan
+      points within reach of any of the tracklet's boxes; crops elsewhere read a whole-scan
+      cell index built on demand. Neither changes an observation. ``None``: crop whole scans
+      every step (the no-cache baseline). ``cache_mb``: memory budget of the cache (LRU over
+      tracklets).
 
     Tracklets shorter than two frames are skipped.
     """
@@ -450,7 +241,8 @@ class TrackingEnv(gym.Env):
         sampling: str = "sequential",
         template_mode: str = "first_and_previous",
         reference: str = "prediction",
-        reward: str | Callable[[np.ndarray, np.ndarray], float] = "iou_3d",
+        reward: str | RewardFn = "iou_3d",
+        reward_kwargs: dict[str, Any] | None = None,
         max_action: Sequence[float] = DEFAULT_MAX_ACTION,
         render_mode: str | None = None,
         scan_transform: ScanTransform | None = None,
@@ -458,12 +250,13 @@ class TrackingEnv(gym.Env):
         cell_m: float = 1.0,
         cache_mb: float = 512.0,
         episode_seed: int | None = None,
+        start_frame: int | str = 0,
+        max_steps: int | None = None,
+        observation_keys: Sequence[str] = OBSERVATION_KEYS,
     ) -> None:
         _check_choice("sampling", sampling, SAMPLING_MODES)
         _check_choice("template_mode", template_mode, TEMPLATE_MODES)
         _check_choice("reference", reference, REFERENCE_MODES)
-        if not callable(reward):
-            _check_choice("reward", reward, REWARDS)
         if render_mode is not None:
             _check_choice("render_mode", render_mode, tuple(self.metadata["render_modes"]))
         if scan_transform is not None and not callable(scan_transform):
@@ -473,6 +266,18 @@ class TrackingEnv(gym.Env):
             raise ValueError(f"max_action must be 4 positive finite numbers; got {max_action!r}")
         if corridor_m is not None and not (corridor_m >= 0 and cell_m > 0):
             raise ValueError(f"corridor_m must be >= 0 and cell_m > 0; got {corridor_m}, {cell_m}")
+        if isinstance(reward, str):
+            self.reward_fn: RewardFn = make_reward(reward, **(reward_kwargs or {}))
+        else:
+            if reward_kwargs:
+                raise ValueError("reward_kwargs apply to a reward name, not to a callable")
+            self.reward_fn = check_reward(reward)
+        self.reward_mode = reward
+        self.reward_kwargs = dict(reward_kwargs or {})
+        self._default_start = _check_start_frame(start_frame, "start_frame")
+        self._default_max_steps = _check_max_steps(max_steps, "max_steps")
+        self.observation_keys = _check_observation_keys(observation_keys)
+        self._previous_search = "previous_search" in self.observation_keys
 
         if isinstance(categories, str):
             categories = (categories,)
@@ -509,12 +314,12 @@ class TrackingEnv(gym.Env):
         for tr in tracklets:
             if np.abs(tr.boxes[:, 3:6]).max() > SIZE_BOUND_M:
                 raise ValueError(f"tracklet {tr.tracklet_id}: box size above {SIZE_BOUND_M} m")
+        self._warn_unseen_in_training()
         self.tracklets: list[Tracklet] = tracklets
         self.dataset = dataset
         self.sampling = sampling
         self.template_mode = template_mode
         self.reference = reference
-        self.reward_mode = reward
         self.max_action = a_max
         self.render_mode = render_mode
         self.scan_transform = scan_transform
@@ -538,11 +343,17 @@ class TrackingEnv(gym.Env):
                 "motion": spaces.Box(-motion_hi, motion_hi, (4,), np.float32),
             }
         )
+        if self._previous_search:
+            n = len(PREVIOUS_SEARCH_CHANNELS)
+            hi = np.array([POINT_BOUND_M] * 3 + [1.0, 1.0], np.float32)
+            lo = np.array([-POINT_BOUND_M] * 3 + [0.0, 0.0], np.float32)
+            self.observation_space["previous_search"] = spaces.Box(
+                np.tile(lo, (SEARCH_SIZE, 1)), np.tile(hi, (SEARCH_SIZE, 1)), (SEARCH_SIZE, n),
+                np.float32,
+            )
         self._motion_hi = motion_hi.astype(np.float64).tolist()
         self._max_action_list = a_max.tolist()
-        self._cache: OrderedDict[int, Any] = OrderedDict()
-        self._cache_bytes = 0
-        self.cache_stats = {"corridor": 0, "full_scan": 0}
+        self._crop_cache = self._new_crop_cache()
         self._cursor = 0
         self._clear_episode()
 
@@ -560,8 +371,13 @@ class TrackingEnv(gym.Env):
 
     @property
     def current_frame(self) -> int:
-        """Index in the tracklet of the frame the current observation is for (1..T-1)."""
+        """Index in the tracklet of the frame the current observation is for."""
         return self._t
+
+    @property
+    def start_frame(self) -> int:
+        """Index in the tracklet of the episode's first frame (the given box's)."""
+        return self._start_frame
 
     @property
     def reference_box(self) -> np.ndarray:
@@ -571,7 +387,8 @@ class TrackingEnv(gym.Env):
 
     @property
     def tracklet_lengths(self) -> list[int]:
-        """Frames of each served tracklet (episode ``i`` has ``tracklet_lengths[i] - 1`` steps)."""
+        """Frames of each served tracklet (a whole-tracklet episode of tracklet ``i`` has
+        ``tracklet_lengths[i] - 1`` steps)."""
         return [len(tr) for tr in self.tracklets]
 
     @property
@@ -581,11 +398,19 @@ class TrackingEnv(gym.Env):
 
     @episode_seed.setter
     def episode_seed(self, seed: int | None) -> None:
-        if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int | np.integer)):
-            raise TypeError(f"episode_seed must be None or an int; got {seed!r}")
-        if seed is not None and seed < 0:
-            raise ValueError(f"episode_seed must be non-negative; got {seed}")
-        self._episode_seed = None if seed is None else int(seed)
+        self._episode_seed = _check_seed(seed, "episode_seed")
+
+    @property
+    def cache_stats(self) -> dict[str, int]:
+        """Crops served by the corridor indices, the whole-scan cell indices and direct
+        whole-scan crops (``corridor``, ``cell_index``, ``full_scan``) since the env was made
+        (or cloned / unpickled)."""
+        return self._crop_cache.stats
+
+    @property
+    def cache_bytes(self) -> int:
+        """Bytes held by the crop cache."""
+        return self._crop_cache.nbytes
 
     @property
     def tracklet_order(self) -> list[int]:
@@ -615,8 +440,7 @@ class TrackingEnv(gym.Env):
         if transform is not None and not callable(transform):
             raise TypeError(f"scan_transform must be callable; got {type(transform).__name__}")
         self.scan_transform = transform
-        self._cache.clear()
-        self._cache_bytes = 0
+        self._crop_cache.clear(transform)
         if self._tracklet is not None:
             self._entry = self._scans(self._index)
 
@@ -627,11 +451,11 @@ class TrackingEnv(gym.Env):
 
         memo = {id(self.dataset): self.dataset, id(self.scan_transform): self.scan_transform}
         memo.update({id(tr): tr for tr in self.tracklets})
+        memo[id(self._crop_cache)] = None  # not copied: replaced below
+        memo[id(self._entry)] = None
         twin = copy.deepcopy(self, memo)
-        twin._cache = OrderedDict()
-        twin._cache_bytes = 0
+        twin._crop_cache = twin._new_crop_cache()
         twin._entry = twin._scans(twin._index) if twin._tracklet is not None else None
-        twin.cache_stats = {"corridor": 0, "full_scan": 0}
         return twin
 
     def is_observed(self, category: str) -> bool:
@@ -646,33 +470,19 @@ class TrackingEnv(gym.Env):
         super().reset(seed=seed)
         if seed is not None:
             self._cursor = 0
-        index = None
-        if options:
-            unknown = sorted(set(options) - set(RESET_OPTIONS))
-            if unknown:
-                raise ValueError(f"unknown reset options {unknown}; valid: {list(RESET_OPTIONS)}")
-            if "tracklet" in options and options["tracklet"] is not None:
-                index = self._tracklet_index(options["tracklet"])
-        if index is None:
-            if self.sampling == "random":
-                index = int(self.np_random.integers(len(self.tracklets)))
-            else:
-                order = self.tracklet_order
-                if not order:
-                    raise RuntimeError("tracklet_order is empty; nothing to visit")
-                index = order[self._cursor % len(order)]
-                self._cursor += 1
-        self._start(index)
-        obs, empty_t, empty_s = self._observe()
+        opts = self._episode_options(options)
+        index = self._choose_tracklet(opts["tracklet"], opts["category"])
+        self._start(index, opts)
+        obs, empty = self._observation()
         self._render_state = None
         tr = self._tracklet
         info = {
             "tracklet": tr.tracklet_id,
             "category": tr.category,
             "observed": self._observed,
-            "init_box": tr.boxes[0].astype(np.float64, copy=True),
-            "empty_template": empty_t,
-            "empty_search": empty_s,
+            "init_box": tr.boxes[self._start_frame].astype(np.float64, copy=True),
+            "start_frame": self._start_frame,
+            **empty,
         }
         self._add_weather(info)
         return obs, info
@@ -683,7 +493,7 @@ class TrackingEnv(gym.Env):
         if self._done:
             raise RuntimeError(
                 f"step() called after the episode of tracklet {self._tracklet.tracklet_id} "
-                "terminated; call env.reset() to start the next one"
+                f"{self._done}; call env.reset() to start the next one"
             )
         a = np.asarray(action, dtype=np.float64)
         if a.shape != (4,):
@@ -692,48 +502,33 @@ class TrackingEnv(gym.Env):
         if not all(map(math.isfinite, values)):
             raise ValueError(f"action contains NaN or inf: {values} (dx, dy, dz, dyaw)")
         clipped = _clip(values, self._max_action_list)
-        action_clipped = clipped != values
 
-        tr, t = self._tracklet, self._t
+        t = self._t
         # the boxes as Python floats for the scalar math; arrays only where they are kept
         pred_box = apply_offset_pair(self._ref.tolist(), clipped)
-        pred_box[3:6] = self._size_box  # frame 0's size
+        pred_box[3:6] = self._size_box  # the given box's size
         pred = np.array(pred_box)
-        gt = tr.boxes[t]
-        gt_box = gt.tolist()
-        iou = _snap_iou(iou_pair(pred_box, gt_box))
-        center_error = math.dist(pred_box[:3], gt_box[:3])
-        if center_error < ROUND_OFF:
-            center_error = 0.0
-        reward = self._reward(pred, gt, iou, center_error)
+        gt = self._tracklet.boxes[t]
+        prev_pred = self._preds[-1]
         self._motion = np.array(  # float32: the observation's dtype
             _clip(offset_between_pair(self._pred_box, pred_box), self._motion_hi), np.float32
         )
         self._pred_box = pred_box
         self._preds.append(pred)
-        terminated = t == self._last_frame
         self._render_state = (self._search_crop, self._ref, gt, pred)
-        info = {
-            "iou": iou,
-            "center_error": float(center_error),
-            "pred_box": pred.copy(),
-            "gt_box": gt.astype(np.float64, copy=True),
-            "category": tr.category,
-            "observed": self._observed,
-            "tracklet": tr.tracklet_id,
-            "frame": t,
-            "target_points": self._target_points(t),
-            "action_clipped": action_clipped,
-        }
+        terminated, truncated = self._is_terminated(), self._is_truncated()
+        info = self._info(pred, gt, action_clipped=clipped != values)
         if terminated:
-            self._done = True
             obs = {k: v.copy() for k, v in self._last_obs.items()}
-            info["empty_template"], info["empty_search"] = self._last_empty
+            empty = self._last_empty
         else:
             self._t = t + 1
-            obs, info["empty_template"], info["empty_search"] = self._observe()
+            obs, empty = self._observation()
+        info.update(empty)
         self._add_weather(info)
-        return obs, float(reward), bool(terminated), False, info
+        self._done = "terminated" if terminated else "truncated" if truncated else ""
+        reward = self._reward(pred, gt, prev_pred, t - self._start_frame - 1, info)
+        return obs, reward, terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
         """``rgb_array``: a bird's-eye ``(H, W, 3)`` uint8 image of the current search region
@@ -762,47 +557,155 @@ class TrackingEnv(gym.Env):
         return render_birds_eye(points, boxes, frame_box=ref, extent_m=half)
 
     def close(self) -> None:
-        self._cache.clear()
-        self._cache_bytes = 0
+        self._crop_cache.clear(self.scan_transform)
 
     # ------------------------------------------------------------------ pickling
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
-        state["_cache"] = OrderedDict()  # the corridor cache is rebuilt lazily
-        state["_cache_bytes"] = 0
+        state["_crop_cache"] = None  # rebuilt lazily: it never changes an observation
         state["_entry"] = None
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
+        self._crop_cache = self._new_crop_cache()
         if self._tracklet is not None:
             self._entry = self._scans(self._index)
 
-    # ------------------------------------------------------------------ internals
+    # ------------------------------------------------------------------ hooks
+
+    def _reward(
+        self,
+        pred: np.ndarray,
+        gt: np.ndarray,
+        prev_pred: np.ndarray,
+        step: int,
+        info: dict[str, Any],
+    ) -> float:
+        """The reward of step ``step`` (0 first) that predicted ``pred`` for ``gt`` after
+        ``prev_pred``: :attr:`reward_fn` on copies, its info read-only."""
+        fn = self.reward_fn
+        value = fn(
+            pred.copy(),
+            np.array(gt, dtype=np.float64),
+            prev_pred.copy(),
+            step,
+            MappingProxyType(info),
+        )
+        return finite_reward(value, fn)
+
+    def _is_terminated(self) -> bool:
+        """Whether the current step ends the tracklet (its last frame)."""
+        return self._t == self._last_frame
+
+    def _is_truncated(self) -> bool:
+        """Whether the current step ends the clip before the tracklet's end."""
+        return self._t == self._clip_end and self._t < self._last_frame
+
+    def _info(self, pred: np.ndarray, gt: np.ndarray, action_clipped: bool) -> dict[str, Any]:
+        """The step info of the prediction ``pred`` for frame ``self._t`` (before the next
+        observation adds its ``empty_*`` flags)."""
+        pred_box, gt_box = self._pred_box, gt.tolist()
+        center_error = math.dist(pred_box[:3], gt_box[:3])
+        tr = self._tracklet
+        return {
+            "iou": snap_iou(iou_pair(pred_box, gt_box)),
+            "center_error": 0.0 if center_error < ROUND_OFF else float(center_error),
+            "pred_box": pred.copy(),
+            "gt_box": gt.astype(np.float64, copy=True),
+            "category": tr.category,
+            "observed": self._observed,
+            "tracklet": tr.tracklet_id,
+            "frame": self._t,
+            "target_points": self._target_points(self._t),
+            "action_clipped": action_clipped,
+        }
+
+    # ------------------------------------------------------------------ episodes
 
     def _clear_episode(self) -> None:
         self._tracklet: Tracklet | None = None
-        self._entry = None
+        self._entry: TrackletScans | None = None
         self._index = -1
+        self._start_frame = 0
         self._t = 0
         self._last_frame = 0
-        self._done = False
+        self._clip_end = 0
+        self._done = ""  # "terminated" or "truncated" once the episode ended
         self._preds: list[np.ndarray] = []
         self._ref = np.zeros(7)
-        self._size0 = np.zeros(3)
         self._size_box = [0.0] * 3
         self._size_obs = np.zeros(3, np.float32)
         self._pred_box = [0.0] * 7
         self._motion = np.zeros(4, np.float32)
         self._observed = True
+        self._resample_rng: np.random.Generator | None = None
         self._first_crop = None
         self._prev_crop = None
         self._all_crops: list[np.ndarray] = []
         self._last_obs = None
-        self._last_empty = (False, False)
+        self._last_empty: dict[str, bool] = {}
         self._search_crop = np.zeros((0, 3), np.float32)
         self._render_state = None
+
+    def _episode_options(self, options: dict[str, Any] | None) -> dict[str, Any]:
+        """The reset options validated, with the constructor's defaults for missing ones."""
+        options = dict(options or {})
+        unknown = sorted(set(options) - set(RESET_OPTIONS))
+        if unknown:
+            raise ValueError(f"unknown reset options {unknown}; valid: {list(RESET_OPTIONS)}")
+        opts = {k: options.get(k) for k in RESET_OPTIONS}
+        if opts["start_frame"] is None:
+            opts["start_frame"] = self._default_start
+        else:
+            _check_start_frame(opts["start_frame"], "options['start_frame']")
+        if opts["max_steps"] is None:
+            opts["max_steps"] = self._default_max_steps
+        else:
+            _check_max_steps(opts["max_steps"], "options['max_steps']")
+        if opts["episode_seed"] is None:
+            opts["episode_seed"] = self._episode_seed
+        else:
+            opts["episode_seed"] = _check_seed(opts["episode_seed"], "options['episode_seed']")
+        category = opts["category"]
+        if category is not None:
+            wanted = (category,) if isinstance(category, str) else tuple(category)
+            served = sorted({tr.category for tr in self.tracklets})
+            bad = [c for c in wanted if c not in served]
+            if bad or not wanted:
+                raise ValueError(
+                    f"options['category']={category!r}: no tracklets of {bad or 'no category'} "
+                    f"in this env; valid: {served}"
+                )
+            opts["category"] = wanted
+        return opts
+
+    def _choose_tracklet(self, tracklet: Any, category: tuple[str, ...] | None) -> int:
+        """The index of the episode's tracklet (draws from ``self.np_random`` when random)."""
+        if tracklet is not None:
+            index = self._tracklet_index(tracklet)
+            found = self.tracklets[index].category
+            if category is not None and found not in category:
+                raise ValueError(
+                    f"options['tracklet']={tracklet!r} is a {found}, not of "
+                    f"options['category']={list(category)}"
+                )
+            return index
+        if self.sampling == "random":
+            if category is None:
+                return int(self.np_random.integers(len(self.tracklets)))
+            pool = [i for i, tr in enumerate(self.tracklets) if tr.category in category]
+            return pool[int(self.np_random.integers(len(pool)))]
+        order = self.tracklet_order
+        if not order:
+            raise RuntimeError("tracklet_order is empty; nothing to visit")
+        for k in range(len(order)):
+            index = order[(self._cursor + k) % len(order)]
+            if category is None or self.tracklets[index].category in category:
+                self._cursor += k + 1
+                return index
+        raise ValueError(f"tracklet_order visits no tracklet of options['category']={category}")
 
     def _tracklet_index(self, value: Any) -> int:
         if isinstance(value, str):
@@ -820,107 +723,82 @@ class TrackingEnv(gym.Env):
             )
         return int(value)
 
-    def _scans(self, index: int):
-        """The per-tracklet crop provider (LRU by bytes; never changes an observation)."""
-        entry = self._cache.get(index)
-        if entry is not None:
-            self._cache.move_to_end(index)
-            return entry
-        tr = self.tracklets[index]
-        corridor = None
-        if self.corridor_m is not None:
-            boxes = np.asarray(tr.boxes, dtype=np.float64)
-            corridor = _Corridor(boxes, boxes[0, 3:6], self.corridor_m, self.cell_m)
-        entry = _TrackletScans(tr, self.scan_transform, corridor, self.cell_m)
-        self._cache[index] = entry
-        self._evict(keep=index)
-        return entry
-
-    def _evict(self, keep: int) -> None:
-        budget = self.cache_mb * 2**20
-        total = sum(e.nbytes for e in self._cache.values())
-        while total > budget and len(self._cache) > 1:
-            idx, entry = next(iter(self._cache.items()))
-            if idx == keep:
-                break
-            self._cache.popitem(last=False)
-            total -= entry.nbytes
-        self._cache_bytes = total
-
-    def _crops(
-        self, box: np.ndarray, frames: Sequence[int], enlargements: tuple[tuple[float, float], ...]
-    ) -> list[np.ndarray]:
-        """:meth:`_TrackletScans.crops` with the cache's statistics and budget."""
-        entry = self._entry
-        before = entry.nbytes
-        crops, hits = entry.crops(box, frames, enlargements)
-        self.cache_stats["corridor"] += hits
-        self.cache_stats["full_scan"] += len(frames) - hits
-        if entry.nbytes != before:
-            self._evict(keep=self._index)
-        return crops
-
-    def _target_points(self, t: int) -> int:
-        entry = self._entry
-        before = entry.nbytes
-        n = entry.target_points(t)
-        if entry.nbytes != before:
-            self._evict(keep=self._index)
-        return n
-
-    def _start(self, index: int) -> None:
-        if self._entry is not None:  # whole scans kept for fallbacks live for one episode only
-            self._entry._full.clear()
+    def _start(self, index: int, opts: dict[str, Any]) -> None:
+        """Episode state for tracklet ``index`` (no observation: see :meth:`_observation`)."""
+        if self._entry is not None:
+            self._entry.end_episode()
         self._clear_episode()
         tr = self.tracklets[index]
+        start = opts["start_frame"]
+        if start == "random":
+            start = int(self.np_random.integers(len(tr) - 1))
+        elif start > len(tr) - 2:
+            raise ValueError(
+                f"start_frame={start} leaves no step in tracklet {tr.tracklet_id} of {len(tr)} "
+                f"frames (valid: 0..{len(tr) - 2} or 'random')"
+            )
         self._tracklet = tr
         self._index = index
         self._entry = self._scans(index)
         self._observed = bool(self.is_observed(tr.category))
-        if self._episode_seed is None:
+        seed = opts["episode_seed"]
+        if seed is None:
             self._resample_rng = self.np_random
         else:  # the id's bytes, not the index: indices change with the category filter
-            key = [self._episode_seed, *tr.tracklet_id.encode()]
+            key = [seed, *tr.tracklet_id.encode()]
+            if start:  # other start frames draw other samples (256 + start: never an id byte)
+                key.append(256 + start)
             self._resample_rng = np.random.default_rng(key)
-        box0 = np.asarray(tr.boxes[0], dtype=np.float64).copy()
-        self._size0 = box0[3:6].copy()
-        self._size_box = self._size0.tolist()
-        self._size_obs = self._size0.astype(np.float32)
+        box0 = np.asarray(tr.boxes[start], dtype=np.float64).copy()
+        self._size_box = box0[3:6].tolist()
+        self._size_obs = box0[3:6].astype(np.float32)
         self._preds = [box0]
         self._pred_box = box0.tolist()  # the last prediction's values (motion's reference)
-        self._t = 1
+        self._start_frame = start
+        self._t = start + 1
         self._last_frame = len(tr) - 1
-        entry = self._entry
-        if entry.first_crop is None:  # frame 0's template crop: the same in every episode
-            (entry.first_crop,) = self._crops(box0, (0,), (TEMPLATE_ENLARGEMENT,))
-        self._first_crop = entry.first_crop
-        self._prev_crop = self._first_crop
-        self._all_crops = [self._first_crop]
+        max_steps = opts["max_steps"]
+        self._clip_end = self._last_frame if max_steps is None else start + max_steps
 
     def _reference_box(self, t: int) -> np.ndarray:
         if self.reference == "prediction":
-            return self._preds[t - 1]
+            return self._preds[t - 1 - self._start_frame]
         if self.reference == "previous_gt":
             return np.asarray(self._tracklet.boxes[t - 1], dtype=np.float64)
         return np.asarray(self._tracklet.boxes[t], dtype=np.float64)
 
-    def _observe(self) -> tuple[dict[str, np.ndarray], bool, bool]:
-        """Observation for frame ``self._t`` (uses the predictions up to ``t - 1``)."""
-        t, mode = self._t, self.template_mode
+    def _observation(self) -> tuple[dict[str, np.ndarray], dict[str, bool]]:
+        """The observation for frame ``self._t`` (uses the predictions up to ``t - 1``) and its
+        ``empty_*`` flags: every crop and the resampling."""
+        t, mode, start = self._t, self.template_mode, self._start_frame
+        entry = self._entry
+        first = entry.template_crops.get(start)
+        if first is None:  # the given box's crop: the same in every episode from this frame
+            (first,) = self._crops(self._preds[0], (start,), (TEMPLATE_ENLARGEMENT,))
+            entry.template_crops[start] = first
+        if t == start + 1:
+            self._first_crop, self._prev_crop, self._all_crops = first, first, [first]
         ref = self._reference_box(t)
-        if t >= 2 and mode != "first":  # previous frame's crop around the previous prediction
-            if self.reference == "prediction":  # one box for both crops: one pass
-                self._prev_crop, search_pts = self._crops(
-                    ref, (t - 1, t), (TEMPLATE_ENLARGEMENT, SEARCH_ENLARGEMENT)
-                )
+        # the crops around the reference box, taken in one pass: the search region, the opt-in
+        # previous search region, and the previous template when its box is the reference
+        frames, enlargements = [t], [SEARCH_ENLARGEMENT]
+        if self._previous_search:
+            frames.append(t - 1)
+            enlargements.append(SEARCH_ENLARGEMENT)
+        new_prev = t >= start + 2 and mode != "first"  # the previous frame's template crop
+        if new_prev and self.reference == "prediction":
+            frames.append(t - 1)
+            enlargements.append(TEMPLATE_ENLARGEMENT)
+        crops = self._crops(ref, tuple(frames), tuple(enlargements))
+        search_pts = crops[0]
+        if new_prev:
+            if self.reference == "prediction":
+                self._prev_crop = crops[-1]
             else:
-                prev_box = self._preds[t - 1]
+                prev_box = self._preds[t - 1 - start]
                 (self._prev_crop,) = self._crops(prev_box, (t - 1,), (TEMPLATE_ENLARGEMENT,))
-                (search_pts,) = self._crops(ref, (t,), (SEARCH_ENLARGEMENT,))
             if mode == "all":
                 self._all_crops.append(self._prev_crop)
-        else:
-            (search_pts,) = self._crops(ref, (t,), (SEARCH_ENLARGEMENT,))
         template = np.empty((TEMPLATE_SIZE, 3), np.float32)
         search = np.empty((SEARCH_SIZE, 3), np.float32)
         half = TEMPLATE_SIZE // 2
@@ -931,10 +809,17 @@ class TrackingEnv(gym.Env):
         elif mode == "previous":
             sets, outs = [self._prev_crop], [template]
         else:
-            crops = self._all_crops
-            sets, outs = [np.concatenate(crops) if len(crops) > 1 else crops[0]], [template]
-        *counts, n_search = resample_into([*sets, search_pts], [*outs, search], self._resample_rng)
-        n_template = sum(counts)
+            merged = self._all_crops
+            sets, outs = [np.concatenate(merged) if len(merged) > 1 else merged[0]], [template]
+        sets.append(search_pts)
+        outs.append(search)
+        if self._previous_search:  # last: the default sets' draws stay those of the default
+            previous = np.empty((SEARCH_SIZE, 3), np.float32)
+            sets.append(crops[1])
+            outs.append(previous)
+        counts = resample_into(sets, outs, self._resample_rng)
+        n_search = counts[-2] if self._previous_search else counts[-1]
+        n_template = sum(counts[: len(sets) - 1 - self._previous_search])
         self._ref = ref
         self._search_crop = search_pts
         obs = {
@@ -943,31 +828,71 @@ class TrackingEnv(gym.Env):
             "size": self._size_obs.copy(),
             "motion": self._motion,  # a new array every step: handed over as it is
         }
-        empty = (n_template == 0, n_search == 0)
+        empty = {"empty_template": n_template == 0, "empty_search": n_search == 0}
+        if self._previous_search:
+            obs["previous_search"] = self._with_channels(previous, ref, counts[-1], t)
+            empty["empty_previous_search"] = counts[-1] == 0
         if t == self._last_frame:
             # the next step terminates and repeats this observation: keep a copy the caller
             # cannot modify (earlier observations are handed over without one)
             self._last_obs = {k: v.copy() for k, v in obs.items()}
             self._last_empty = empty
-        return obs, *empty
+        return obs, empty
 
-    def _reward(self, pred: np.ndarray, gt: np.ndarray, iou: float, center_error: float) -> float:
-        mode = self.reward_mode
-        if mode == "iou_3d":
-            return iou
-        if mode == "iou_bev":
-            return _snap_iou(float(iou_bev(pred, gt)))
-        if mode == "neg_center_error":
-            return -center_error
-        value = float(mode(pred.copy(), np.asarray(gt, dtype=np.float64).copy()))
-        if not math.isfinite(value):
-            raise ValueError(f"the reward callable returned {value}")
-        return value
+    def _with_channels(self, xyz: np.ndarray, ref: np.ndarray, count: int, t: int) -> np.ndarray:
+        """``previous_search`` ``(SEARCH_SIZE, 5)`` float32 from its resampled points ``xyz``
+        (reference box frame): the time and previous-box mask columns."""
+        out = np.zeros((len(xyz), len(PREVIOUS_SEARCH_CHANNELS)), np.float32)
+        if count == 0:
+            return out
+        out[:, :3] = xyz
+        out[:, 3] = PREVIOUS_TIME
+        # the reference box is the previous frame's ground truth: the given box at the first
+        # step, or previous_gt; otherwise it is a prediction (or frame t's box) and uncertain
+        certain = self.reference == "previous_gt" or (
+            self.reference == "prediction" and t == self._start_frame + 1
+        )
+        outside, inside = MASK_GT if certain else MASK_PREDICTED
+        threshold = extent_threshold(crop_extents(ref, [TEMPLATE_ENLARGEMENT]), np.float32)
+        out[:, 4] = np.where(in_extent(xyz.T, threshold), inside, outside)
+        return out
+
+    # ------------------------------------------------------------------ crop cache
+
+    def _new_crop_cache(self) -> CropCache:
+        return CropCache(self.corridor_m, self.cell_m, self.cache_mb, self.scan_transform)
+
+    def _scans(self, index: int) -> TrackletScans:
+        """The per-tracklet crop provider (LRU by bytes; never changes an observation)."""
+        return self._crop_cache.entry(index, self.tracklets[index])
+
+    def _crops(
+        self, box: np.ndarray, frames: Sequence[int], enlargements: tuple[tuple[float, float], ...]
+    ) -> list[np.ndarray]:
+        """:meth:`envs.scan_cache.TrackletScans.crops` of the episode's tracklet."""
+        return self._crop_cache.crops(self._entry, self._index, box, frames, enlargements)
+
+    def _target_points(self, t: int) -> int:
+        return self._crop_cache.target_points(self._entry, self._index, t)
 
     def _add_weather(self, info: dict[str, Any]) -> None:
         weather = getattr(self.scan_transform, "info", None)
         if weather is not None:
             info["weather"] = weather
+
+    def _warn_unseen_in_training(self) -> None:
+        """Warn when a training split serves the setting's unseen (test-only) categories."""
+        if self.split != "train" or self.setting is None:
+            return
+        leaked = [c for c in self.setting.unseen if c in (self.categories or ())]
+        if leaked:
+            warnings.warn(
+                f"TrackingEnv on split 'train' serves the unseen categories {leaked} of setting "
+                f"{self.setting.name!r}: a policy trained here sees them; pass "
+                f"categories={list(self.setting.observed)} to train class-agnostically",
+                UserWarning,
+                stacklevel=3,
+            )
 
 
 def _clip(values: Sequence[float], bound: Sequence[float]) -> list[float]:
@@ -976,14 +901,53 @@ def _clip(values: Sequence[float], bound: Sequence[float]) -> list[float]:
     return [m if v > m else -m if v < -m else v for v, m in zip(values, bound, strict=True)]
 
 
-def _snap_iou(iou: float) -> float:
-    """IoUs within :data:`ROUND_OFF` of 1 are round-off of the polygon clipping: report 1."""
-    return 1.0 if iou > 1.0 - ROUND_OFF else iou
-
-
 def _check_choice(name: str, value: Any, valid: Sequence[str]) -> None:
     if value not in valid:
         raise ValueError(f"unknown {name} {value!r}; valid: {', '.join(map(repr, valid))}")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool)
+
+
+def _check_seed(seed: Any, name: str) -> int | None:
+    if seed is None:
+        return None
+    if not _is_int(seed):
+        raise TypeError(f"{name} must be None or an int; got {seed!r}")
+    if seed < 0:
+        raise ValueError(f"{name} must be non-negative; got {seed}")
+    return int(seed)
+
+
+def _check_start_frame(value: Any, name: str) -> int | str:
+    if value == "random" and isinstance(value, str):
+        return value
+    if not _is_int(value) or value < 0:
+        raise ValueError(f"{name} must be a frame index >= 0 or 'random'; got {value!r}")
+    return int(value)
+
+
+def _check_observation_keys(keys: Sequence[str]) -> tuple[str, ...]:
+    keys = (keys,) if isinstance(keys, str) else tuple(keys)
+    valid = OBSERVATION_KEYS + OPTIONAL_OBSERVATION_KEYS
+    bad = [k for k in keys if k not in valid]
+    missing = [k for k in OBSERVATION_KEYS if k not in keys]
+    if bad or missing or len(set(keys)) != len(keys):
+        raise ValueError(
+            f"observation_keys={list(keys)}: must hold {list(OBSERVATION_KEYS)} (the default "
+            f"contract) plus any of {list(OPTIONAL_OBSERVATION_KEYS)}, each once"
+            + (f"; unknown: {bad}" if bad else "")
+        )
+    return keys
+
+
+def _check_max_steps(value: Any, name: str) -> int | None:
+    if value is None:
+        return None
+    if not _is_int(value) or value < 1:
+        raise ValueError(f"{name} must be None or an int >= 1; got {value!r}")
+    return int(value)
 
 
 # --------------------------------------------------------------------------- factories
@@ -1033,147 +997,3 @@ def make_kitti_env(
     return TrackingEnv(dataset, setting=setting, categories=categories, split=split, **env_kwargs)
 
 
-# --------------------------------------------------------------------------- toy dataset
-
-
-class _ToyScans:
-    """Picklable scan loader of :func:`make_toy_dataset`: frame -> ``(N, 4)`` float32.
-
-    Each frame: ``num_clutter`` uniform clutter points in a 60 m square around the origin, a flat
-    ground grid, and for every target its box surface sampled with ``target_points`` points.
-    Deterministic in ``(seed, frame)``.
-    """
-
-    def __init__(
-        self,
-        seed: int,
-        boxes_per_frame: dict[int, list[np.ndarray]],
-        target_points: int,
-        num_clutter: int,
-    ) -> None:
-        self.seed = seed
-        self.boxes_per_frame = boxes_per_frame
-        self.target_points = target_points
-        self.num_clutter = num_clutter
-
-    def __call__(self, frame: int) -> np.ndarray:
-        rng = np.random.default_rng([self.seed, frame])
-        clutter = np.column_stack(
-            [rng.uniform(-30, 30, (self.num_clutter, 2)), rng.uniform(-1.5, 2.5, self.num_clutter)]
-        )
-        parts = [clutter]
-        for box in self.boxes_per_frame.get(frame, []):
-            local = rng.uniform(-0.5, 0.5, (self.target_points, 3)) * box[3:6]
-            face = rng.integers(0, 3, self.target_points)
-            sign = np.where(rng.random(self.target_points) < 0.5, -0.5, 0.5)
-            local[np.arange(self.target_points), face] = sign * box[3:6][face]
-            c, s = math.cos(box[6]), math.sin(box[6])
-            world = np.column_stack(
-                [
-                    box[0] + c * local[:, 0] - s * local[:, 1],
-                    box[1] + s * local[:, 0] + c * local[:, 1],
-                    box[2] + local[:, 2],
-                ]
-            )
-            parts.append(world)
-        xyz = np.concatenate(parts)
-        intensity = rng.random((len(xyz), 1))
-        return np.hstack([xyz, intensity]).astype(np.float32)
-
-
-@dataclass
-class ToyDataset:
-    """What :func:`make_toy_dataset` returns: ``.tracklets``, ``.split``, ``.categories``."""
-
-    tracklets: list[Tracklet]
-    split: str = "test"
-    categories: tuple[str, ...] | None = None
-
-    def write_kitti(self, root: str | os.PathLike, scene: str = "0019") -> str:
-        """Write the dataset in the KITTI tracking layout under ``root`` as scene ``scene``
-        (``0019``: the test split) with a KITTI-like calibration; returns ``root``."""
-        from pathlib import Path
-
-        from envs.data.kitti import (
-            Calibration,
-            LabelRow,
-            lidar_to_camera_boxes,
-            write_calibration,
-            write_labels,
-            write_scan,
-        )
-
-        root = Path(root)
-        velo_to_cam = np.array(
-            [[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.08], [1.0, 0.0, 0.0, -0.27]]
-        )
-        calib = Calibration(tr_velo_to_cam=velo_to_cam)
-        write_calibration(root / "calib" / f"{scene}.txt", calib)
-        rows, frames = [], set()
-        for tr in self.tracklets:
-            cam = lidar_to_camera_boxes(tr.boxes, calib)
-            for f, box in zip(tr.frames, cam, strict=True):
-                rows.append(LabelRow.from_box(int(f), tr.track_id, tr.category, box))
-                frames.add(int(f))
-        rows.sort(key=lambda r: (r.frame, r.track_id))
-        write_labels(root / "label_02" / f"{scene}.txt", rows)
-        loader = self.tracklets[0].scans
-        for f in range(max(frames) + 1):
-            write_scan(root / "velodyne" / scene / f"{f:06d}.bin", loader(f))
-        return str(root)
-
-
-_TOY_SIZES = {
-    "Car": (4.0, 1.8, 1.5),
-    "Van": (5.0, 2.0, 2.2),
-    "Pedestrian": (0.8, 0.6, 1.75),
-    "Cyclist": (1.8, 0.6, 1.7),
-}
-
-
-def make_toy_dataset(
-    categories: Sequence[str] = ("Car", "Pedestrian", "Van", "Cyclist"),
-    num_frames: int | Sequence[int] = 8,
-    seed: int = 0,
-    target_points: int = 300,
-    num_clutter: int = 4000,
-    speed_mps: float = 8.0,
-) -> ToyDataset:
-    """A tiny in-memory dataset: one scene, one target per category moving along a straight line
-    (10 Hz; heading turning slowly), plus clutter; ``num_frames`` per tracklet (an int or one per
-    category). Deterministic in ``seed``; picklable. For tests and examples."""
-    rng = np.random.default_rng(seed)
-    if isinstance(num_frames, int):
-        num_frames = [num_frames] * len(categories)
-    boxes_per_frame: dict[int, list[np.ndarray]] = {}
-    specs = []
-    for k, (cat, n) in enumerate(zip(categories, num_frames, strict=True)):
-        l, w, h = _TOY_SIZES.get(cat, (2.0, 1.0, 1.5))
-        start = np.array([rng.uniform(-15, 15), rng.uniform(-15, 15)])
-        yaw0 = rng.uniform(-math.pi, math.pi)
-        speed = speed_mps * (0.25 if cat == "Pedestrian" else 1.0)
-        t = np.arange(n)
-        yaw = yaw0 + 0.02 * t
-        xy = (
-            start
-            + np.cumsum(np.column_stack([np.cos(yaw), np.sin(yaw)]) * speed * 0.1, axis=0)
-            - np.array([math.cos(yaw0), math.sin(yaw0)]) * speed * 0.1
-        )
-        boxes = np.column_stack(
-            [
-                xy,
-                np.full(n, -1.0 + h / 2),
-                np.full((n, 3), (l, w, h)),
-                (yaw + math.pi) % (2 * math.pi) - math.pi,
-            ]
-        )
-        frames = np.arange(n) + k  # staggered starts
-        for f, b in zip(frames, boxes, strict=True):
-            boxes_per_frame.setdefault(int(f), []).append(b)
-        specs.append((k, cat, frames, boxes))
-    loader = _ToyScans(seed, boxes_per_frame, target_points, num_clutter)
-    tracklets = [
-        Tracklet(f"0000/{k}", "0000", k, cat, frames, boxes, loader)
-        for k, cat, frames, boxes in specs
-    ]
-    return ToyDataset(tracklets, "test", tuple(categories))

@@ -100,6 +100,7 @@ def test_spaces_and_types(toy):
         "category",
         "observed",
         "init_box",
+        "start_frame",
         "empty_template",
         "empty_search",
     }
@@ -243,7 +244,7 @@ def test_rewards(toy):
     env.reset(seed=0)
     _, r, *_, info = env.step(np.zeros(4))
     assert r >= info["iou"] - 1e-12
-    env = TrackingEnv(toy, reward=lambda pred, gt: 7.0)
+    env = TrackingEnv(toy, reward=lambda pred, gt, prev_pred, step, info: 7.0)
     env.reset(seed=0)
     assert env.step(np.zeros(4))[1] == 7.0
 
@@ -408,8 +409,9 @@ def test_corridor_cache_is_exact(toy):
                 )
                 obs_all.append((obs, [inf["target_points"] for inf in infos[1:]]))
         runs.append(obs_all)
-    assert envs[0].cache_stats["corridor"] > 0 and envs[0].cache_stats["full_scan"] > 0
-    assert envs[2].cache_stats["corridor"] == 0
+    assert envs[0].cache_stats["corridor"] > 0 and envs[0].cache_stats["cell_index"] > 0
+    assert envs[0].cache_stats["full_scan"] == 0
+    assert envs[2].cache_stats["corridor"] == envs[2].cache_stats["cell_index"] == 0
     for other in runs[1:]:
         for (oa, ta), (ob, tb) in zip(runs[0], other, strict=True):
             assert ta == tb
@@ -532,7 +534,7 @@ def test_step_before_reset_and_after_end(toy):
 
 def test_bad_options_and_modes(toy):
     env = TrackingEnv(toy)
-    with pytest.raises(ValueError, match="valid: \\['tracklet'\\]"):
+    with pytest.raises(ValueError, match="valid: \\['tracklet', 'category', 'start_frame'"):
         env.reset(options={"tracklett": 0})
     with pytest.raises(ValueError, match="out of range"):
         env.reset(options={"tracklet": 99})
