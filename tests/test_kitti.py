@@ -132,6 +132,10 @@ def make_world(root: Path, rng: np.random.Generator) -> dict:
 @pytest.fixture()
 def world(tmp_path):
     truth = make_world(tmp_path, np.random.default_rng(0))
+    for scene in range(21):  # the other KITTI scenes, without labelled objects
+        path = tmp_path / "label_02" / f"{scene:04d}.txt"
+        if not path.exists():
+            path.write_text("")
     return tmp_path, truth
 
 

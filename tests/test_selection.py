@@ -121,17 +121,19 @@ def test_score_candidates_reuses_its_cache_and_rescores_on_a_new_key(tiny_config
         score_candidates(["previous_box"], tiny_config, cache_dir=tmp_path)
 
 
-def test_cli_select_refuses_bad_input_naming_it(tmp_path):
+def test_cli_select_refuses_bad_input_naming_it(tmp_path, capsys):
     from training.cli import main
 
-    with pytest.raises(SystemExit, match="validation part 0:test"):
-        main(["select", "previous_box", "--parts", "1:val", "0:test"])
-    with pytest.raises(SystemExit, match="'2:dev'"):
-        main(["select", "previous_box", "--parts", "2:dev"])
-    with pytest.raises(SystemExit, match="candidate 'no-such.safetensors'"):
-        main(["select", "no-such.safetensors", "--parts", "1:val"])
-    with pytest.raises(SystemExit, match="listed twice"):
-        main(["select", "previous_box", "previous_box", "--parts", "1:val"])
+    for argv, expected in (
+        (["previous_box", "--parts", "1:val", "0:test"], "validation part 0:test"),
+        (["previous_box", "--parts", "2:dev"], "'2:dev'"),
+        (["no-such.safetensors", "--parts", "1:val"], "candidate 'no-such.safetensors'"),
+        (["previous_box", "previous_box", "--parts", "1:val"], "listed twice"),
+    ):
+        assert main(["select", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("pointtrack select: ") and expected in err, err
+        assert err.count("\n") == 1
 
 
 def test_load_candidate_reads_training_checkpoints_and_names_bad_files(tmp_path):
@@ -139,7 +141,7 @@ def test_load_candidate_reads_training_checkpoints_and_names_bad_files(tmp_path)
 
     import trackers
     from training.config import tracker_config
-    from training.pretrain import CHECKPOINT_FORMAT
+    from training.checkpoint import CHECKPOINT_FORMAT
     from training.selection import load_candidate
 
     model = trackers.make("p2b", **tracker_config("p2b", "slim"))

@@ -442,18 +442,27 @@ def test_cli_generate(tmp_path, capsys):
 
 
 def test_stale_temp_dirs_of_killed_runs_are_cleaned(tmp_path):
+    """A temp dir whose lock nobody holds (its writer died) and half-deleted trash go; a temp
+    dir whose writer holds its lock, or without a lock file but with a live pid, stays."""
     import os
-    import time
 
-    from envs.synthetic.world import _clean_stale_temps
+    from envs.synthetic.world import _hold_lock, _release_lock, clean_stale_temps
 
-    old = time.time() - 3600
-    dead = tmp_path / ".w.tmp-999999999-abcd"  # no such process
-    alive = tmp_path / f".w.tmp-{os.getpid()}-abcd"
-    fresh = tmp_path / ".w.tmp-999999998-abcd"
-    for d in (dead, alive, fresh):
-        d.mkdir()
-    os.utime(dead, (old, old))
-    os.utime(alive, (old, old))
-    _clean_stale_temps(tmp_path / "w")
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, fresh.name])
+    dead = tmp_path / ".w.tmp-999999999-abcd"  # lock file left, nobody holds it
+    dead.mkdir()
+    (tmp_path / ".w.tmp-999999999-abcd.lock").write_text("")
+    no_lock_dead = tmp_path / ".w.tmp-999999998-abcd"  # no such process
+    no_lock_dead.mkdir()
+    no_lock_alive = tmp_path / f".w.tmp-{os.getpid()}-ef01"
+    no_lock_alive.mkdir()
+    held = tmp_path / f".w.tmp-{os.getpid()}-abcd"
+    fd = _hold_lock(held)
+    held.mkdir()
+    (tmp_path / ".w.trash-1234").mkdir()
+    try:
+        clean_stale_temps(tmp_path)
+        assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+            [no_lock_alive.name, held.name, held.name + ".lock"]
+        )
+    finally:
+        _release_lock(held, fd)

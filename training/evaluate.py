@@ -23,7 +23,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,37 +34,58 @@ from envs.metrics import THRESHOLDS_IOU, THRESHOLDS_M, OPEAccumulator
 from envs.plotting import pyplot, save_figure
 
 __all__ = [
+    "UntrainedTrackerError",
     "evaluate",
     "format_table",
+    "json_safe",
     "load_tracker",
     "plot_curves",
     "save_report",
     "split_tracklets",
+    "tracker_name",
 ]
 
 
-def load_tracker(name_or_path: str) -> Any:
-    """A tracker by name or checkpoint path through ``trackers.load`` (baselines as a fallback
-    while ``trackers.load`` is unavailable)."""
-    try:
-        import trackers
-
-        load = getattr(trackers, "load", None)
-    except ImportError:  # pragma: no cover - trackers always importable in this repo
-        load = None
-    if load is not None:
-        return load(name_or_path)
-    from trackers.baselines import BASELINES
-
-    if name_or_path in BASELINES:
-        return BASELINES[name_or_path]()
-    raise ValueError(
-        f"cannot load tracker {name_or_path!r}: trackers.load is not available yet; "
-        f"baselines: {', '.join(BASELINES)}"
-    )
+class UntrainedTrackerError(ValueError):
+    """A learned tracker named without weights, loaded without ``untrained=True``."""
 
 
-def _tracker_name(tracker: Any, name: str | None) -> str:
+def load_tracker(name_or_path: str, *, untrained: bool = False, seed: int = 0) -> Any:
+    """A tracker by name, tracker file, shipped checkpoint name or training checkpoint.
+
+    * A training checkpoint (``RUN/best.pt``, ``RUN/last.pt``) gives the weights its run
+      validated (:func:`training.checkpoint.tracker_from_checkpoint`).
+    * Anything else goes through ``trackers.load``.
+    * A learned tracker's bare name (``"p2b"``) would be a randomly initialised model: refused
+      with :class:`UntrainedTrackerError` unless ``untrained=True``, and then initialised from
+      ``seed`` (the global torch RNG is left as it was), so two runs score the same.
+
+    Raises ``ValueError`` / ``FileNotFoundError`` naming ``name_or_path``.
+    """
+    import torch
+
+    import trackers
+    from trackers.registry import find_checkpoint
+    from training.checkpoint import is_training_checkpoint, tracker_from_checkpoint
+
+    if is_training_checkpoint(name_or_path):
+        return tracker_from_checkpoint(name_or_path)
+    if find_checkpoint(name_or_path) is not None:
+        return trackers.load(name_or_path)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        tracker = trackers.load(name_or_path)
+    if isinstance(tracker, torch.nn.Module) and not untrained:
+        raise UntrainedTrackerError(
+            f"tracker {name_or_path!r} has no weights: it would be a randomly initialised model. "
+            "Give a checkpoint (a shipped name such as p2b-kitti1-u, a tracker file, or a run's "
+            "best.pt), or pass --untrained to evaluate the random initialisation on purpose"
+        )
+    return tracker
+
+
+def tracker_name(tracker: Any, name: str | None = None) -> str:
+    """``name`` if given, else ``tracker.name``, else the tracker's class name."""
     if name:
         return name
     return str(getattr(tracker, "name", None) or type(tracker).__name__)
@@ -128,7 +149,11 @@ def evaluate(
         The report described in the module docstring. ``act`` is called once per step;
         ``tracker_fps`` counts only the time spent inside ``act``.
     """
-    name = _tracker_name(tracker, name)
+    name = tracker_name(tracker, name)
+    if tracklets is not None:
+        tracklets = [int(i) for i in tracklets]
+        if not tracklets:
+            raise ValueError("evaluate: tracklets=[] selects no tracklet (None means all)")
     start = time.perf_counter()
     owned = None
     if num_envs > 1 and not isinstance(env, gym.vector.VectorEnv):
@@ -200,9 +225,23 @@ def _env_info(u: Any) -> dict[str, Any]:
     }
 
 
+def _check_indices(count: int, tracklets: Sequence[int] | None) -> list[int]:
+    """The tracklet indices to run; ``ValueError`` for an env without tracklets or an index out
+    of range (a report over nothing would be NaN)."""
+    if count == 0:
+        raise ValueError("evaluate: the env holds no tracklets (check the split, the setting "
+                         "and the categories)")
+    indices = list(range(count)) if tracklets is None else list(tracklets)
+    bad = [i for i in indices if not 0 <= i < count]
+    if bad:
+        raise ValueError(f"evaluate: tracklet indices {bad[:5]} out of range for {count} "
+                         "tracklets")
+    return indices
+
+
 def _run_single(tracker, env, seed, tracklets, progress, name):
     u = env.unwrapped
-    indices = list(range(u.num_tracklets)) if tracklets is None else [int(i) for i in tracklets]
+    indices = _check_indices(u.num_tracklets, tracklets)
     lengths = u.tracklet_lengths
     bar = _progress(sum(lengths[i] for i in indices), progress, name)
     acc = OPEAccumulator()
@@ -236,7 +275,7 @@ def _run_vector(tracker, vec, seed, tracklets, progress, name):
         raise ValueError(f"evaluate needs a vector env with NEXT_STEP autoreset; got {mode}")
     num = vec.num_envs
     lengths = vec.get_attr("tracklet_lengths")[0]
-    indices = list(range(len(lengths))) if tracklets is None else [int(i) for i in tracklets]
+    indices = _check_indices(len(lengths), tracklets)
     sub = split_tracklets([lengths[i] for i in indices], num)
     orders = [[indices[i] for i in o] for o in sub]
     remaining = np.array([len(o) for o in orders])
@@ -301,20 +340,30 @@ def _fmt(x: float) -> str:
     return "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:5.1f}"
 
 
+def category_order(categories: Iterable[str]) -> list[str]:
+    """Categories in one fixed order whatever the reports hold: KITTI's label order
+    (``envs.data.kitti.CATEGORIES``), then any other name alphabetically."""
+    from envs.data.kitti import CATEGORIES
+
+    names = set(categories)
+    rank = {c: i for i, c in enumerate(CATEGORIES)}
+    return sorted(names, key=lambda c: (rank.get(c, len(rank)), c))
+
+
 def format_table(reports: Mapping[str, Mapping[str, Any]] | Sequence[Mapping[str, Any]]) -> str:
-    """A plain-text table: one row per report, ``Success / Precision`` per category (unseen
-    ones marked ``*``), then the observed, unseen and frame-weighted mean groups, frames and the
-    tracker's frames/s."""
+    """A plain-text table: one row per report, ``Success / Precision`` per category in a fixed
+    order (:func:`category_order`; unseen ones marked ``*``), then the observed, unseen and
+    frame-weighted mean groups, frames and the tracker's frames/s."""
     if not isinstance(reports, Mapping):
         reports = {r.get("tracker", f"#{i}"): r for i, r in enumerate(reports)}
-    cats: list[str] = []
     unseen: set[str] = set()
+    found: set[str] = set()
     for r in reports.values():
         for c, e in r["categories"].items():
-            if c not in cats:
-                cats.append(c)
+            found.add(c)
             if not e["observed"]:
                 unseen.add(c)
+    cats = category_order(found)
     cols = [c + ("*" if c in unseen else "") for c in cats] + ["observed", "unseen", "mean"]
     width = max(13, *(len(c) for c in cols))
     namew = max(12, *(len(n) for n in reports))
@@ -340,13 +389,14 @@ def format_table(reports: Mapping[str, Mapping[str, Any]] | Sequence[Mapping[str
     return "\n".join(lines)
 
 
-def _json_safe(x: Any) -> Any:
+def json_safe(x: Any) -> Any:
+    """``x`` with numpy values as Python ones and NaN / inf as ``None`` (JSON-able)."""
     if isinstance(x, dict):
-        return {str(k): _json_safe(v) for k, v in x.items()}
+        return {str(k): json_safe(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
-        return [_json_safe(v) for v in x]
+        return [json_safe(v) for v in x]
     if isinstance(x, np.ndarray):
-        return _json_safe(x.tolist())
+        return json_safe(x.tolist())
     if isinstance(x, np.generic):
         x = x.item()
     if isinstance(x, float) and not math.isfinite(x):
@@ -362,7 +412,7 @@ def save_report(report: Mapping[str, Any], path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(_json_safe(dict(report)), indent=2) + "\n")
+    tmp.write_text(json.dumps(json_safe(dict(report)), indent=2) + "\n")
     os.replace(tmp, path)
     return path
 

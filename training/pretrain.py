@@ -38,7 +38,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import random
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -50,14 +49,32 @@ import torch
 from torch.utils.data import DataLoader, Subset
 
 from training.averaging import WeightEMA
-from training.config import IDENTITY_EXEMPT, TrainConfig
+from training.checkpoint import (
+    CHECKPOINT_FORMAT,
+    CheckpointError,
+    atomic_save,
+    check_resumable,
+    config_differences,
+    read_checkpoint,
+    remove_stale_temps,
+    restore_rng_state,
+    rng_state,
+    tracker_from_checkpoint,
+    truncate_log,
+)
+from training.config import TrainConfig
 from training.sam import SAM
 from training.samples import split_batch
 from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
 
-__all__ = ["TrainResult", "TrainingError", "Trainer", "train"]
-
-CHECKPOINT_FORMAT = 1
+__all__ = [
+    "TrainResult",
+    "Trainer",
+    "TrainingError",
+    "check_run_dir",
+    "tracker_from_checkpoint",
+    "train",
+]
 
 
 class TrainingError(RuntimeError):
@@ -79,49 +96,8 @@ class TrainResult:
 # --------------------------------------------------------------------------- helpers
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
-def _rng_state() -> dict[str, Any]:
-    mt, keys, pos, has_gauss, cached = np.random.get_state()
-    version, internal, gauss = random.getstate()
-    return {
-        "torch": torch.get_rng_state(),
-        "numpy_keys": torch.from_numpy(keys.astype(np.int64)),
-        "numpy_pos": int(pos),
-        "numpy_has_gauss": int(has_gauss),
-        "numpy_cached": float(cached),
-        "python": [int(version), list(internal), gauss],
-    }
-
-
-def _set_rng_state(state: dict[str, Any]) -> None:
-    torch.set_rng_state(state["torch"])
-    np.random.set_state(
-        ("MT19937", state["numpy_keys"].numpy().astype(np.uint32), state["numpy_pos"],
-         state["numpy_has_gauss"], state["numpy_cached"])
-    )
-    version, internal, gauss = state["python"]
-    random.setstate((version, tuple(internal), gauss))
-
-
 def _epoch_seed(seed: int, epoch: int, rank: int) -> int:
     return (seed * 1_000_003 + epoch * 10_007 + rank * 101 + 17) % (2**62)
-
-
-def _identity(cfg: TrainConfig) -> dict[str, Any]:
-    return {k: v for k, v in cfg.to_dict().items() if k not in IDENTITY_EXEMPT}
-
-
-def _differences(checkpoint: dict[str, Any], current: dict[str, Any], label: str) -> str:
-    """``"key: checkpoint A vs <label> B, ..."`` for every key whose values differ; "" if none."""
-    keys = sorted(k for k in set(checkpoint) | set(current) if checkpoint.get(k) != current.get(k))
-    return ", ".join(f"{k}: checkpoint {checkpoint.get(k)!r} vs {label} {current.get(k)!r}"
-                     for k in keys)
 
 
 def _dist_info() -> tuple[int, int]:
@@ -200,17 +176,10 @@ class _Tracklets:
         self.tracklets = tracklets
 
 
-def _summarise_report(report: Any) -> dict[str, float]:
-    """Pull mean Success/Precision out of an evaluate() report (dict-like)."""
-    rep = report.to_dict() if hasattr(report, "to_dict") else report
-    if isinstance(rep, dict):
-        for key in ("mean", "overall", "all"):
-            sub = rep.get(key)
-            if isinstance(sub, dict) and "success" in sub:
-                return {"success": float(sub["success"]), "precision": float(sub["precision"])}
-        if "success" in rep:
-            return {"success": float(rep["success"]), "precision": float(rep["precision"])}
-    raise TrainingError(f"cannot read Success/Precision from the evaluation report: {rep!r}"[:500])
+def _summarise_report(report: dict[str, Any]) -> dict[str, float]:
+    """Mean Success / Precision of an :func:`training.evaluate.evaluate` report."""
+    return {"success": float(report["mean"]["success"]),
+            "precision": float(report["mean"]["precision"])}
 
 
 # --------------------------------------------------------------------------- the trainer
@@ -304,8 +273,8 @@ class Trainer:
             start = load_file(path, expect=self.cfg.tracker)
         except (ValueError, FileNotFoundError) as exc:
             raise TrainingError(f"init_weights={source!r}: {exc}") from exc
-        details = _differences(config_to_dict(start.config), config_to_dict(self.model.config),
-                               "run")
+        details = config_differences(config_to_dict(start.config),
+                                     config_to_dict(self.model.config), "run")
         if details:
             raise TrainingError(f"init_weights={source!r} has another tracker config ({details})")
         self.model.load_state_dict(start.state_dict())
@@ -321,7 +290,7 @@ class Trainer:
             "scheduler": self.scheduler.state_dict(),
             "decorrelation": self.decor.state_dict() if self.decor else {},
             "ema": self.ema.state_dict() if self.ema else {},
-            "rng": _rng_state(),
+            "rng": rng_state(),
             "epoch": self.epoch,
             "step": self.step,
             "best_val": self.best_val,
@@ -331,25 +300,10 @@ class Trainer:
 
     def load(self, path: Path) -> None:
         try:
-            ckpt = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # noqa: BLE001 - report any unreadable file the same way
-            raise TrainingError(f"cannot read checkpoint {path}: {exc}") from exc
-        if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-            raise TrainingError(f"{path} is not a pointtrack training checkpoint")
-        if ckpt.get("tracker") != self.cfg.tracker:
-            raise TrainingError(
-                f"refusing to resume: {path} is a checkpoint of tracker {ckpt.get('tracker')!r}, "
-                f"this run trains {self.cfg.tracker!r}"
-            )
-        # a key added to TrainConfig after the checkpoint was written ran at its default then
-        saved = {**_identity(TrainConfig()),
-                 **{k: v for k, v in ckpt["config"].items() if k not in IDENTITY_EXEMPT}}
-        details = _differences(saved, _identity(self.cfg), "now")
-        if details:
-            raise TrainingError(
-                f"refusing to resume from {path}: it was trained with a different config "
-                f"({details})"
-            )
+            ckpt = read_checkpoint(path)
+            check_resumable(ckpt, self.cfg, path)
+        except CheckpointError as exc:
+            raise TrainingError(str(exc)) from exc
         self.model.load_state_dict(ckpt["model"])
         self.base_opt.load_state_dict(ckpt["optimizer"])
         self.scheduler.load_state_dict(ckpt["scheduler"])
@@ -357,7 +311,7 @@ class Trainer:
             self.decor.load_state_dict(ckpt["decorrelation"])
         if self.ema is not None:
             self.ema.load_state_dict(ckpt["ema"])
-        _set_rng_state(ckpt["rng"])
+        restore_rng_state(ckpt["rng"])
         self.epoch = int(ckpt["epoch"])
         self.step = int(ckpt["step"])
         self.best_val = ckpt.get("best_val")
@@ -366,7 +320,7 @@ class Trainer:
 
     def _save(self, name: str) -> None:
         if self.main:
-            _atomic_save(self.state(), self.out / name)
+            atomic_save(self.state(), self.out / name)
 
     # ------------------------------------------------------------------ logging
     def _open_logs(self) -> None:
@@ -568,21 +522,25 @@ class Trainer:
 
     def run(self, resume: bool = False) -> TrainResult:
         cfg = self.cfg
-        last = self.out / "last.pt"
-        if resume:
-            if last.exists():
-                self.load(last)
-                if self.main:
-                    print(f"resuming {last}: {self.epoch} epochs done, step {self.step}")
-            elif self.main:
-                print(f"no checkpoint at {last}; starting a fresh run")
-        elif last.exists():
-            raise TrainingError(
-                f"{last} already exists: pass --resume to continue it, or choose another --out"
-            )
+        if self.main:
+            last = check_run_dir(self.out, resume)
+        else:  # rank 0 decided the same before any rank could write
+            last = self.out / "last.pt" if resume and (self.out / "last.pt").is_file() else None
+        if last is not None:
+            self.load(last)
+            if self.main:
+                dropped = truncate_log(self.out / "log.jsonl", self.step)
+                print(f"resuming {last}: {self.epoch} epochs done, step {self.step}"
+                      + (f" ({dropped} log records of the interrupted attempt dropped)"
+                         if dropped else ""))
+        elif resume and self.main:
+            # the log of an attempt killed before its first checkpoint: it starts again
+            (self.out / "log.jsonl").unlink(missing_ok=True)
+            print(f"no checkpoint in {self.out} yet; starting its run from the beginning")
         if self.main:
             self.out.mkdir(parents=True, exist_ok=True)
-            (self.out / "config.yaml").write_text(_yaml(cfg.to_dict()))
+            remove_stale_temps(self.out)
+            _write_text_atomic(self.out / "config.yaml", _yaml(cfg.to_dict()))
         self._open_logs()
         self._write({"kind": "data", "step": self.step, "samples": len(self.data),
                      "data_root": str(getattr(self.data, "root", "")), "world_size": self.world})
@@ -629,6 +587,62 @@ def _yaml(values: dict[str, Any]) -> str:
     return yaml.safe_dump(values, sort_keys=False)
 
 
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def check_run_dir(out: str | Path, resume: bool) -> Path | None:
+    """Decide what a run into ``out`` does before anything is built: the ``last.pt`` to resume
+    from, or ``None`` for a fresh run.
+
+    A fresh run (``resume=False``) refuses a directory that already holds a run (``last.pt`` or
+    ``config.yaml``). ``resume=True`` refuses a directory without either (a typo would otherwise
+    start a new run); with ``config.yaml`` but no ``last.pt`` (killed in the first epoch) the run
+    starts from the beginning. Also refuses an ``out`` that cannot be written.
+    Raises :class:`TrainingError`."""
+    out = Path(out)
+    last, config = out / "last.pt", out / "config.yaml"
+    if resume:
+        if last.is_file():
+            return last
+        if not config.is_file():
+            raise TrainingError(f"nothing to resume in {out}: it holds no last.pt and no "
+                                "config.yaml (check --out, or drop --resume to start a run)")
+    elif last.exists() or config.exists():
+        held = last if last.exists() else config
+        raise TrainingError(f"{out} already holds a run ({held.name} exists): pass --resume to "
+                            "continue it, or choose another --out")
+    _check_writable(out)
+    return None
+
+
+def _check_writable(out: Path) -> None:
+    """Refuse an output directory that cannot be created or written (``TrainingError``)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / f".write-test.tmp{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise TrainingError(f"cannot write to the run directory {out}: "
+                            f"{exc.strerror or exc}") from None
+
+
+def check_device(device: str) -> None:
+    """Refuse a CUDA device when CUDA is unavailable or the index does not exist."""
+    if not device.startswith("cuda"):
+        return
+    if not torch.cuda.is_available():
+        raise TrainingError(f"device {device!r}: CUDA is not available on this machine "
+                            "(use --device cpu)")
+    index = torch.device(device).index
+    if index is not None and index >= torch.cuda.device_count():
+        raise TrainingError(f"device {device!r}: only {torch.cuda.device_count()} CUDA "
+                            "device(s) here")
+
+
 def train(
     cfg: TrainConfig,
     *,
@@ -639,39 +653,12 @@ def train(
 ) -> TrainResult:
     """Run (or resume) one pretraining run; see the module docstring. ``val_fn=False`` disables
     validation; the factories let tests use stand-in models and data."""
+    cfg.validate()
+    check_device(cfg.device)
+    if int(os.environ.get("RANK", "0")) == 0:
+        check_run_dir(cfg.out, resume)  # before any data is built: refusals come in a second
     trainer = Trainer(cfg, model_factory=model_factory, train_data=train_data, val_fn=val_fn)
     try:
         return trainer.run(resume=resume)
     finally:
         trainer.close()
-
-
-def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """The validated weights and the config of a training checkpoint (``best.pt`` /
-    ``last.pt``): the weight average when the run kept one, else the model's weights.
-
-    Raises ``ValueError`` naming ``path`` for a file that is not a training checkpoint."""
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several unrelated types for foreign files
-        raise ValueError(f"{path} is not a training checkpoint: {exc}") from exc
-    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path} is not a training checkpoint (format "
-                         f"{ckpt.get('format') if isinstance(ckpt, dict) else None!r}, "
-                         f"expected {CHECKPOINT_FORMAT})")
-    average = ckpt.get("ema") or {}
-    return average.get("shadow") or ckpt["model"], ckpt["config"]
-
-
-def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
-    """The tracker (CPU, eval mode) holding the validated weights of a training checkpoint
-    (:func:`load_weights`), ready for ``trackers.save`` or evaluation."""
-    import trackers
-    from training.config import tracker_config
-
-    weights, config = load_weights(path)
-    kwargs = tracker_config(config["tracker"], config.get("model_size", "default"),
-                            config.get("tracker_config"))
-    model = trackers.make(config["tracker"], **kwargs)
-    model.load_state_dict(weights)
-    return model.eval()

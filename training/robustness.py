@@ -232,7 +232,8 @@ def run_weather_benchmark(
         log: called with a line after each setting (e.g. ``print``).
     """
     from envs.weather import WeatherWrapper
-    from training.evaluate import _tracker_name, evaluate
+    from training.evaluate import evaluate
+    from training.evaluate import tracker_name as _tracker_name
 
     kinds_t = weather_kinds(kinds)
     levels_t = tuple(check_level(v) for v in levels)
@@ -413,7 +414,7 @@ def plot_analysis(result: dict[str, Any], path: str | Path) -> Path:
 def save_weather(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     """Write ``weather.json``, ``weather_table.txt``, ``weather_success.png`` (and
     ``weather_analysis.png`` when the result has analysis) into ``out_dir``."""
-    from training.evaluate import _json_safe
+    from training.evaluate import json_safe as _json_safe
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

@@ -131,19 +131,14 @@ def pooled(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 
 def load_candidate(candidate: str) -> Any:
     """A tracker from a training checkpoint (``best.pt`` / ``last.pt``: the weights its run
-    validated, see ``training.pretrain.load_weights``) or anything ``trackers.load`` takes.
+    validated, see ``training.checkpoint.load_weights``) or anything ``trackers.load`` takes
+    (:func:`training.evaluate.load_tracker`; a learned tracker's bare name is refused: it has no
+    weights to select).
 
-    Raises ``ValueError`` naming the candidate when neither reads it."""
+    Raises ``ValueError`` naming the candidate when it cannot be read."""
     from training.evaluate import load_tracker
-    from training.pretrain import tracker_from_checkpoint
 
-    path = Path(candidate)
     try:
-        if path.suffix == ".pt" and path.is_file():
-            try:
-                return tracker_from_checkpoint(path)
-            except ValueError:
-                pass  # a tracker file saved as .pt: trackers.load reads it
         return load_tracker(candidate)
     except (OSError, ValueError, KeyError) as exc:
         raise ValueError(f"candidate {candidate!r}: {exc}") from exc

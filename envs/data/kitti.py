@@ -40,9 +40,11 @@ __all__ = [
     "KittiTracking",
     "LabelRow",
     "MissingScanWarning",
+    "MissingSceneWarning",
     "NonFinitePointsWarning",
     "SceneScans",
     "camera_to_lidar_boxes",
+    "expected_scenes",
     "label_path",
     "lidar_to_camera_boxes",
     "read_calibration",
@@ -440,7 +442,27 @@ def _read_label_table(path: Path) -> _LabelTable:
             if line.strip():
                 _parse_label_line(line, path, lineno)
         raise ValueError(f"label file {path}: cannot be parsed")  # pragma: no cover
+    _check_box_sizes(path, lines, types, values)
     return _LabelTable(values[:, 0].astype(np.int64), values[:, 1].astype(np.int64), types, values)
+
+
+def _check_box_sizes(path: Path, lines: list[str], types: list[str], values: np.ndarray) -> None:
+    """Refuse a labelled object (not ``DontCare``, whose sizes are ``-1`` by convention) with a
+    box height, width or length that is not positive, naming the file, line and field."""
+    sizes = values[:, 10:13]
+    care = np.array([t != "DontCare" for t in types], dtype=bool)
+    bad = np.flatnonzero(care & (sizes <= 0).any(axis=1))
+    if not len(bad):
+        return
+    row = int(bad[0])
+    lineno = [i for i, line in enumerate(lines, 1) if line.strip()][row]
+    col = int(np.flatnonzero(sizes[row] <= 0)[0])
+    name = LabelRow._fields[10 + col]
+    raise ValueError(
+        f"label file {path}, line {lineno}: field {11 + col} ({name}) is {sizes[row, col]:g}; "
+        f"a {types[row]} box needs a positive height, width and length"
+        + (f" ({len(bad) - 1} more such rows)" if len(bad) > 1 else "")
+    )
 
 
 def read_labels(path: str | Path) -> list[LabelRow]:
@@ -576,6 +598,30 @@ class SceneScans:
         return f"SceneScans({str(self.root)!r}, {self.scene!r}, missing={self.missing!r})"
 
 
+class MissingSceneWarning(RuntimeWarning):
+    """A split named scenes whose label files are missing; they were skipped on request."""
+
+
+def expected_scenes(root: str | Path, split: str) -> list[str] | None:
+    """Scene names (``"0019"``) that ``split`` needs under ``root``: the scenes a synthetic
+    world's ``manifest.json`` lists (it may hold a subset of the KITTI scenes) within the split,
+    else the split's KITTI scene numbers; ``None`` (no expectation) for ``"all"`` without a
+    manifest."""
+    import json
+
+    scene_range = _check_split(split)
+    try:
+        manifest = json.loads((Path(root) / "manifest.json").read_text())
+        listed = sorted(str(k) for k in manifest["scene_stats"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        listed = None
+    if listed is not None:
+        return [s for s in listed if scene_range is None or int(s) in scene_range]
+    if scene_range is None:
+        return None
+    return [f"{i:04d}" for i in scene_range]
+
+
 def _check_split(split: str) -> range | None:
     if split not in SPLITS:
         raise ValueError(f"unknown split {split!r}; valid splits: {', '.join(SPLITS)}")
@@ -611,13 +657,15 @@ class KittiTracking:
     Args:
         root: folder with ``label_02/``, ``calib/`` and ``velodyne/``.
         split: ``"train"`` (scenes 0–16), ``"val"`` (17–18), ``"test"`` (19–20) or ``"all"``.
-            Scenes of the split without a label file are skipped (synthetic worlds may hold a
-            subset).
+            Every scene the split needs (:func:`expected_scenes`: a synthetic world's manifest
+            may list a subset) must have a label file, else ``FileNotFoundError`` naming them.
         categories: category names (KITTI spelling), a single name, or ``None`` for every
             category except DontCare.
         cache_size: scans kept per scene.
         missing_scans: ``"raise"`` (default) or ``"empty"``: what reading a labelled frame
             without a scan does (see :class:`SceneScans`).
+        allow_missing_scenes: go on without the split's missing scenes, with a
+            :class:`MissingSceneWarning` listing them.
 
     Attributes:
         tracklets: list ordered by scene, then track id.
@@ -632,6 +680,7 @@ class KittiTracking:
         *,
         cache_size: int = 8,
         missing_scans: str = "raise",
+        allow_missing_scenes: bool = False,
     ) -> None:
         if missing_scans not in ("raise", "empty"):
             raise ValueError(f"missing_scans must be 'raise' or 'empty'; got {missing_scans!r}")
@@ -646,6 +695,19 @@ class KittiTracking:
         scenes = sorted(p.stem for p in label_dir.glob("*.txt") if p.stem.isdigit())
         if scene_range is not None:
             scenes = [s for s in scenes if int(s) in scene_range]
+        missing = sorted(set(expected_scenes(self.root, split) or ()) - set(scenes))
+        if missing:
+            names = ", ".join(f"label_02/{s}.txt" for s in missing)
+            if not allow_missing_scenes:
+                raise FileNotFoundError(
+                    f"KITTI root {self.root}: split {split!r} needs scenes {', '.join(missing)} "
+                    f"but {names} {'is' if len(missing) == 1 else 'are'} missing (pass "
+                    "allow_missing_scenes=True, --allow-missing-scenes, to go on without them)"
+                )
+            warnings.warn(
+                f"KITTI root {self.root}: split {split!r} without its scenes "
+                f"{', '.join(missing)} ({names} missing)", MissingSceneWarning, stacklevel=2,
+            )
         self.scenes: list[str] = scenes
         self.tracklets: list[Tracklet] = []
         wanted = None if self.categories is None else set(self.categories)

@@ -5,6 +5,8 @@ Entry points:
 
 * :func:`ensure_world` — the root of a world, generated once into the cache and reused.
 * :func:`generate_world` — generate a world into a directory (``pointtrack generate``).
+* :func:`verify_world` — check a world's files against the sizes and SHA-256 digests of its
+  manifest (``pointtrack generate --verify DIR``).
 * :data:`PRESETS` (``tiny``, ``small``, ``default``) and :data:`SENSORS` (``hdl64``, ``hdl32``).
 
 Read a world with ``envs.data.KittiTracking(root, split, categories)``.
@@ -17,10 +19,12 @@ from envs.synthetic.world import (
     KITTI_LIKE_CALIBRATION,
     PRESETS,
     Preset,
+    clean_stale_temps,
     default_cache_dir,
     ensure_world,
     generate_world,
     get_preset,
+    verify_world,
 )
 
 __all__ = [
@@ -32,9 +36,11 @@ __all__ = [
     "SIZE_STATS",
     "Preset",
     "SensorModel",
+    "clean_stale_temps",
     "default_cache_dir",
     "ensure_world",
     "generate_world",
     "get_preset",
     "get_sensor",
+    "verify_world",
 ]

@@ -11,11 +11,13 @@ world end with one complete copy (the second rename fails and that process uses 
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import json
 import os
 import shutil
 import uuid
+import warnings
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -55,6 +57,8 @@ __all__ = [
     "MIN_TRACK_FRAMES",
     "label_rows",
     "split_tracks",
+    "clean_stale_temps",
+    "verify_world",
     "world_identity",
 ]
 
@@ -473,6 +477,7 @@ def _generate_into(
     manifest = dict(ident)
     manifest["scene_stats"] = entries
     manifest["categories"] = list(CATEGORIES)
+    manifest["files"] = _file_table(tmp)
     # Written last: a directory with a manifest is complete.
     (tmp / MANIFEST).write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
 
@@ -519,52 +524,160 @@ def generate_world(
     ident = world_identity(preset, sensor, seed, labels_path, scan_frames, scenes)
     out = Path(out_dir)
     if out.exists():
-        if _matches(out, ident):
+        if _matches(out, ident) and not verify_world(out, digests=False):
             return out
-        if any(out.iterdir()):
-            if not overwrite:
-                raise FileExistsError(
-                    f"{out} exists and is not this world (preset={preset}, sensor={sensor}, "
-                    f"seed={seed}); choose another --out or overwrite"
-                )
-        _remove_tree(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    _clean_stale_temps(out)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
+        if any(out.iterdir()) and not _matches(out, ident) and not overwrite:
+            raise FileExistsError(
+                f"{out} exists and is not this world (preset={preset}, sensor={sensor}, "
+                f"seed={seed}); choose another --out or overwrite"
+            )
+        _remove_tree(out)  # another world (overwrite) or this one, damaged: regenerate
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OSError(f"cannot create {out.parent} for the world: {exc.strerror or exc}") from None
+    clean_stale_temps(out.parent)
+    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    lock = _hold_lock(tmp)  # before the directory exists: a cleaner never sees it unlocked
+    try:
+        tmp.mkdir()
         _generate_into(
             tmp, ident, p, sensor_model, seed, labels_path, progress, scan_frames, scenes
         )
         try:
             os.rename(tmp, out)
         except OSError:
-            # Someone else finished the same world first: keep theirs if it is complete.
+            # Someone else finished a world under this name first: keep it if it is this one.
             if _matches(out, ident):
                 _remove_tree(tmp)
                 return out
-            raise
+            raise FileExistsError(
+                f"{out} was written by another process meanwhile and is not this world "
+                f"(preset={preset}, sensor={sensor}, seed={seed}); choose another --out"
+            ) from None
     except BaseException:
         _remove_tree(tmp)
         raise
+    finally:
+        _release_lock(tmp, lock)
     return out
 
 
-def _clean_stale_temps(out: Path, min_age_s: float = 600.0) -> None:
-    """Remove temp directories of ``out`` left by killed runs (``SIGKILL`` skips our cleanup):
-    those whose process is gone and that have not changed for ``min_age_s`` seconds."""
-    import time
+def _lock_path(tmp: Path) -> Path:
+    return tmp.with_name(tmp.name + ".lock")
 
-    for tmp in out.parent.glob(f".{out.name}.tmp-*"):
+
+def _hold_lock(tmp: Path) -> int:
+    """Create and lock (``flock``) the lock file of a temp directory; the kernel releases the
+    lock when the process dies, however it dies, which is how a cleaner tells a stale temp
+    directory from one being written (in any process namespace)."""
+    fd = os.open(_lock_path(tmp), os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX)
+    return fd
+
+
+def _release_lock(tmp: Path, fd: int) -> None:
+    _lock_path(tmp).unlink(missing_ok=True)
+    os.close(fd)
+
+
+def _owner_alive(tmp: Path) -> bool:
+    """Whether the process that made temp directory ``tmp`` is still writing it."""
+    try:
+        fd = os.open(_lock_path(tmp), os.O_RDWR)
+    except FileNotFoundError:  # no lock file (its owner finished or failed): ask the pid
         try:
-            pid = int(tmp.name.rsplit(".tmp-", 1)[1].split("-")[0])
-            if time.time() - tmp.stat().st_mtime < min_age_s:
-                continue
-            os.kill(pid, 0)  # raises if no such process
-        except ProcessLookupError:
-            _remove_tree(tmp)
-        except (ValueError, IndexError, OSError):
+            pid = int(tmp.name.split(".tmp-", 1)[1].split("-")[0])
+            os.kill(pid, 0)
+        except (ValueError, IndexError, ProcessLookupError):
+            return False
+        except PermissionError:
+            return True
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+def clean_stale_temps(directory: str | Path) -> list[Path]:
+    """Remove what killed runs left in ``directory`` (``SIGKILL`` skips every cleanup): temp
+    directories ``.NAME.tmp-*`` whose writer is gone (:func:`_owner_alive`), their lock files,
+    and half-deleted ``.NAME.trash-*`` trees. Cheap (one ``glob``); run on every use of the
+    cache. Returns the removed paths."""
+    directory = Path(directory)
+    removed: list[Path] = []
+    if not directory.is_dir():
+        return removed
+    for path in directory.glob(".*.tmp-*"):
+        if path.name.endswith(".lock"):
+            if not path.with_name(path.name.removesuffix(".lock")).exists():
+                tmp = path.with_name(path.name.removesuffix(".lock"))
+                if not _owner_alive(tmp):
+                    path.unlink(missing_ok=True)
+                    removed.append(path)
             continue
+        if path.is_dir() and not _owner_alive(path):
+            _remove_tree(path)
+            _lock_path(path).unlink(missing_ok=True)
+            removed.append(path)
+    for path in directory.glob(".*.trash-*"):
+        shutil.rmtree(path, ignore_errors=True)
+        removed.append(path)
+    return removed
+
+
+def _file_table(root: Path) -> dict[str, dict]:
+    """``{relative path: {"bytes", "sha256"}}`` of every file under ``root`` (the manifest's
+    record of what a complete world holds)."""
+    table = {}
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = path.relative_to(root).as_posix()
+        if rel in (MANIFEST, "preview.png"):
+            continue
+        table[rel] = {"bytes": path.stat().st_size, "sha256": _sha256(path)}
+    return table
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def verify_world(root: str | Path, *, digests: bool = True) -> list[str]:
+    """Check a world directory against its manifest; returns the problems (empty: intact).
+
+    Every file the manifest lists must exist with its size; with ``digests`` also with its
+    SHA-256 (reads every byte: about a second per GB). The size check alone is a ``stat`` per
+    file (milliseconds for the ``default`` world), so :func:`ensure_world` runs it on every use
+    and regenerates a world that fails it; ``pointtrack generate --verify DIR`` runs both."""
+    root = Path(root)
+    manifest = _read_manifest(root)
+    if manifest is None:
+        return [f"{root}: no readable {MANIFEST} (not a generated world, or an incomplete one)"]
+    files = manifest.get("files")
+    if not isinstance(files, dict):
+        return [f"{root / MANIFEST}: no file list (written by a generator older than the "
+                "integrity check); regenerate the world"]
+    problems = []
+    for rel, entry in files.items():
+        path = root / rel
+        try:
+            size = path.stat().st_size
+        except OSError:
+            problems.append(f"{path}: missing")
+            continue
+        if size != entry["bytes"]:
+            problems.append(f"{path}: {size} bytes, the manifest says {entry['bytes']}")
+        elif digests and _sha256(path) != entry["sha256"]:
+            problems.append(f"{path}: SHA-256 differs from the manifest's")
+    return problems
 
 
 def _remove_tree(path: Path) -> None:
@@ -600,6 +713,31 @@ def ensure_world(
     base = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     tag = "" if labels_dir is None else "replay-"
     out = base / "worlds" / f"{tag}{preset}-{sensor}-s{int(seed)}-{digest}"
+    clean_stale_temps(out.parent)
     if _matches(out, ident):
-        return out
+        problems = verify_world(out, digests=False)
+        if not problems:
+            return out
+        warnings.warn(
+            f"cached world {out} is damaged ({problems[0]}"
+            + (f" and {len(problems) - 1} more" if len(problems) > 1 else "")
+            + "); regenerating it", stacklevel=2,
+        )
+    _check_cache_writable(base)
     return generate_world(out, preset, sensor, seed, labels_dir, progress=progress, overwrite=True)
+
+
+def _check_cache_writable(base: Path) -> None:
+    """A one-line ``OSError`` naming the cache and ``$POINTTRACK_CACHE`` when worlds cannot be
+    written there."""
+    worlds = base / "worlds"
+    try:
+        worlds.mkdir(parents=True, exist_ok=True)
+        probe = worlds / f".write-test.tmp-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise OSError(
+            f"cannot write synthetic worlds to the cache {worlds} ({exc.strerror or exc}); set "
+            "POINTTRACK_CACHE to a writable directory"
+        ) from None

@@ -36,7 +36,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--eval-seed", type=int, default=0,
         help="seed of the point resampling (per tracklet: results do not depend on --num-envs)",
     )
-    parser.add_argument("--max-tracklets", type=int, default=None, help="evaluate the first N only")
+    parser.add_argument("--max-tracklets", type=int, default=None, metavar="N",
+                        help="evaluate the first N only (N >= 1)")
+    parser.add_argument(
+        "--untrained", action="store_true",
+        help="allow a learned tracker's bare name (p2b, bat, gpt): a randomly initialised "
+        "model seeded by --eval-seed (without this flag such a name is refused)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --weather, --weather-levels, --weather-seed, --no-analysis (training.robustness, issue 7)
     from training.robustness import add_weather_arguments
@@ -46,7 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     """The dataset / env flags shared by `eval` and `demo`."""
-    parser.add_argument("--dataset", choices=("synthetic", "kitti"), default="synthetic")
+    parser.add_argument("--dataset", choices=("synthetic", "kitti"), default="synthetic",
+                        help="a synthetic world (generated once into the cache) or a KITTI root")
     parser.add_argument(
         "--root",
         default=None,
@@ -56,7 +63,13 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="small", help="synthetic preset (tiny, small, default)")
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
     parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    parser.add_argument("--split", default="test", choices=("train", "val", "test", "all"))
+    parser.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
+                        help="scenes: train 0-16, val 17-18, test 19-20 (KITTI's split)")
+    parser.add_argument(
+        "--allow-missing-scenes", action="store_true",
+        help="go on (with a warning listing them) when the root lacks label files of scenes "
+        "the split names; without it that is an error",
+    )
     parser.add_argument(
         "--setting",
         default=None,
@@ -68,9 +81,11 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         "--template-mode",
         default="first_and_previous",
         choices=("first_and_previous", "first", "previous", "all"),
+        help="which earlier frames give the template points",
     )
     parser.add_argument(
-        "--reference", default="prediction", choices=("prediction", "previous_gt", "current_gt")
+        "--reference", default="prediction", choices=("prediction", "previous_gt", "current_gt"),
+        help="the box the search area is cut around (prediction: the honest closed loop)",
     )
 
 
@@ -95,13 +110,20 @@ def build_env(args: argparse.Namespace, **overrides: Any):
 
     kwargs = env_kwargs(args)
     kwargs.update(overrides)
-    if args.dataset == "kitti":
-        if not args.root:
-            raise SystemExit("pointtrack eval: --dataset kitti needs --root DIR")
-        return make_kitti_env(root=args.root, **kwargs)
-    if args.root:  # an already generated synthetic world
-        return make_kitti_env(root=args.root, **kwargs)
-    return make_synthetic_env(preset=args.preset, sensor=args.sensor, seed=args.seed, **kwargs)
+    if args.dataset == "kitti" and not args.root:
+        raise SystemExit("pointtrack eval: --dataset kitti needs --root DIR")
+    if not args.root:
+        return make_synthetic_env(preset=args.preset, sensor=args.sensor, seed=args.seed,
+                                  **kwargs)
+    if not getattr(args, "allow_missing_scenes", False):
+        return make_kitti_env(root=args.root, **kwargs)  # KITTI, or a generated world
+    from envs.data import KittiTracking, get_setting
+    from envs.tracking_env import TrackingEnv
+
+    categories = kwargs.pop("categories")
+    load = categories or (get_setting(kwargs["setting"]).categories if kwargs["setting"] else None)
+    dataset = KittiTracking(args.root, kwargs["split"], load, allow_missing_scenes=True)
+    return TrackingEnv(dataset, categories=categories, **kwargs)
 
 
 def build_vector_env(args: argparse.Namespace, num_envs: int, **overrides: Any):
@@ -113,16 +135,17 @@ def build_vector_env(args: argparse.Namespace, num_envs: int, **overrides: Any):
 
 
 def run(args: argparse.Namespace) -> int:
-    from training.evaluate import evaluate, format_table, load_tracker, plot_curves, save_report
+    from training.evaluate import evaluate, format_table, plot_curves, save_report
 
-    if args.num_envs < 1:
-        raise SystemExit("pointtrack eval: --num-envs must be >= 1")
+    check_args(args)
     if getattr(args, "weather", None):
         return _run_weather(args)
+    # every tracker before any data or evaluation, so a typo in the last one fails in a second
+    loaded = load_trackers(args)
+    check_out(args)
     env = build_env(args) if args.num_envs == 1 else build_vector_env(args, args.num_envs)
     reports = {}
-    for name in args.tracker:
-        tracker = load_tracker(name)
+    for name, tracker in loaded.items():
         n = env.unwrapped.num_tracklets if args.num_envs == 1 else env.get_attr("num_tracklets")[0]
         subset = None if args.max_tracklets is None else list(range(min(args.max_tracklets, n)))
         reports[name] = evaluate(
@@ -145,22 +168,60 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_args(args: argparse.Namespace) -> None:
+    """Refuse bad counts before anything is built (``SystemExit`` with one line; the CLI turns
+    it into exit status 2)."""
+    if args.num_envs < 1:
+        raise SystemExit(f"pointtrack eval: --num-envs must be >= 1, got {args.num_envs}")
+    if args.max_tracklets is not None and args.max_tracklets < 1:
+        raise SystemExit(f"pointtrack eval: --max-tracklets must be >= 1, got "
+                         f"{args.max_tracklets} (leave it out to evaluate every tracklet)")
+
+
+def check_out(args: argparse.Namespace) -> None:
+    """Refuse an ``--out`` that cannot be created or written, before any evaluation."""
+    if args.out:
+        import os
+        from pathlib import Path
+
+        out = Path(args.out)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            probe = out / f".write-test.tmp{os.getpid()}"
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as exc:
+            raise SystemExit(f"pointtrack eval: cannot write to --out {out}: "
+                             f"{exc.strerror or exc}") from None
+
+
+def load_trackers(args: argparse.Namespace) -> dict[str, Any]:
+    """``{name: tracker}`` for every ``--tracker``, all loaded (and so validated) up front."""
+    from training.evaluate import load_tracker
+
+    if len(set(args.tracker)) != len(args.tracker):
+        raise SystemExit(f"pointtrack eval: a tracker is listed twice: {args.tracker}")
+    return {name: load_tracker(name, untrained=args.untrained, seed=args.eval_seed)
+            for name in args.tracker}
+
+
 def _run_weather(args: argparse.Namespace) -> int:
     """``--weather KINDS``: the adverse-weather benchmark (``training.robustness``): each tracker
     clean and under every kind and level, printed as Tables III-IV of ``003_…``; with ``--out``,
     JSON, table and plots per tracker under ``<out>/weather_<tracker>/``."""
     from pathlib import Path
 
-    from training.evaluate import load_tracker
     from training.robustness import run_weather_eval
 
+    loaded = load_trackers(args)
+    check_out(args)
     base = build_env(args)
     n = base.num_tracklets
     subset = None if args.max_tracklets is None else list(range(min(args.max_tracklets, n)))
-    for name in args.tracker:
+    for name, tracker in loaded.items():
         slug = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
         run_weather_eval(
-            load_tracker(name),
+            tracker,
             base.clone,  # a fresh env per setting, sharing the data
             args.weather,
             levels=args.weather_levels,

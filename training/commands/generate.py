@@ -9,7 +9,13 @@ import time
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags (valid values come from the synthetic module's tables)."""
-    parser.add_argument("--out", required=True, help="output directory (created atomically)")
+    parser.add_argument("--out", help="output directory (created atomically); required unless "
+                        "--verify")
+    parser.add_argument(
+        "--verify", metavar="DIR", default=None,
+        help="check the world in DIR against its manifest (every file's size and SHA-256) "
+        "and exit: 0 intact, 1 damaged (one line per problem)",
+    )
     parser.add_argument(
         "--preset",
         default="small",
@@ -47,8 +53,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from envs.synthetic import generate_world
+    from envs.synthetic import generate_world, verify_world
     from envs.synthetic.preview import save_preview
+
+    if args.verify:
+        problems = verify_world(args.verify, digests=True)
+        for line in problems:
+            print(f"pointtrack generate --verify: {line}", file=sys.stderr)
+        if not problems:
+            print(f"{args.verify}: every file matches the manifest (sizes and SHA-256)")
+        return 1 if problems else 0
+    if not args.out:
+        raise SystemExit("pointtrack generate: --out DIR is required (or --verify DIR)")
 
     scenes = None
     if args.scenes:
@@ -73,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
             scan_frames=args.scan_frames,
             scenes=scenes,
         )
-    except (ValueError, FileExistsError) as exc:
+    except (ValueError, OSError) as exc:
         print(f"pointtrack generate: {exc}", file=sys.stderr)
         return 2
     elapsed = time.perf_counter() - start

@@ -7,8 +7,10 @@ Examples::
     pointtrack train --config my.yaml --set iters_per_epoch=200 --out runs/x --resume
     torchrun --nproc_per_node 2 -m training.cli train --tracker bat --out runs/bat-ddp
 
-Precedence: built-in defaults < ``--config FILE`` (YAML, keys of ``training.config.TrainConfig``)
-< the flags below < ``--set KEY=VALUE``. Everything is validated before training starts.
+Precedence: built-in defaults < ``--config FILE`` (YAML, keys of ``training.config.TrainConfig``;
+with ``--resume`` and no ``--config``, ``OUT/config.yaml``) < the flags below < ``--set
+KEY=VALUE``. Flags left out take the config's value. Everything is validated, and ``--resume`` /
+an existing ``--out`` / ``--device`` are checked, before any data is built.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
     import trackers
 
-    parser.add_argument("--tracker", choices=trackers.available("learned"))
+    parser.add_argument("--tracker", choices=trackers.available("learned"),
+                        help="the model to train")
     parser.add_argument("--setting", help="class-agnostic setting, e.g. kitti-1 (observed "
                         "categories are trained)")
     parser.add_argument("--category", help="class-specific mode: train on this category only")
@@ -35,46 +38,75 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tracker widths: the papers' (default) or slim (CPU training)")
     parser.add_argument("--weighting", choices=("none", "decorrelation", "sam"),
                         help="none (-U), decorrelation (-W), sam (-S)")
-    parser.add_argument("--dataset", choices=("synthetic", "kitti"))
+    parser.add_argument("--dataset", choices=("synthetic", "kitti"),
+                        help="synthetic world (generated once into the cache) or a KITTI root")
     parser.add_argument("--preset", help="synthetic world preset (tiny, small, default)")
     parser.add_argument("--sensor", help="synthetic LiDAR profile (hdl64, hdl32)")
     parser.add_argument("--data-root", dest="data_root", help="KITTI tracking root")
-    parser.add_argument("--world-seed", dest="world_seed", type=int)
-    parser.add_argument("--epochs", type=int)
-    parser.add_argument("--batch-size", dest="batch_size", type=int)
-    parser.add_argument("--lr", type=float)
+    parser.add_argument("--world-seed", dest="world_seed", type=int,
+                        help="seed of the synthetic training world")
+    parser.add_argument("--epochs", type=int, help="epochs to train")
+    parser.add_argument("--batch-size", dest="batch_size", type=int,
+                        help="samples per step")
+    parser.add_argument("--lr", type=float, help="Adam learning rate")
     parser.add_argument("--iters-per-epoch", dest="iters_per_epoch", type=int,
                         help="cap each epoch at this many batches (a fresh random subset)")
-    parser.add_argument("--candidates-per-frame", dest="candidates_per_frame", type=int)
+    parser.add_argument("--candidates-per-frame", dest="candidates_per_frame", type=int,
+                        help="search-area samples drawn per labelled frame")
     parser.add_argument("--size-jitter", dest="size_jitter", type=float, metavar="A",
                         help="resize each sample's object by U(1-A, 1+A) per axis (default 0)")
     parser.add_argument("--ema-decay", dest="ema_decay", type=float, metavar="D",
                         help="validate and export an exponential moving average of the weights "
                              "with this decay per step (default 0 = off)")
-    parser.add_argument("--seed", type=int)
+    parser.add_argument("--seed", type=int, help="seed of every random draw of the run")
     parser.add_argument("--init-weights", dest="init_weights", metavar="CHECKPOINT",
                         help="start from these tracker weights (a .safetensors/.pt file or a "
                              "shipped name such as p2b-kitti1-u); fresh optimizer and schedule")
     parser.add_argument("--out", help="run directory (checkpoints, logs)")
-    parser.add_argument("--num-workers", dest="num_workers", type=int)
+    parser.add_argument("--num-workers", dest="num_workers", type=int,
+                        help="DataLoader worker processes")
     parser.add_argument("--threads", type=int, help="torch.set_num_threads")
     parser.add_argument("--device", help="cpu or cuda[:N]")
-    parser.add_argument("--val-max-tracklets", dest="val_max_tracklets", type=int)
-    parser.add_argument("--val-max-frames", dest="val_max_frames", type=int)
+    parser.add_argument("--val-max-tracklets", dest="val_max_tracklets", type=int,
+                        help="validate on at most this many val tracklets (spread evenly)")
+    parser.add_argument("--val-max-frames", dest="val_max_frames", type=int,
+                        help="truncate each val tracklet to this many frames")
     parser.add_argument("--config", help="YAML file of config keys")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="any config key (repeatable), e.g. --set decor_penalty=0.2")
-    parser.add_argument("--resume", action="store_true", help="continue OUT/last.pt")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue OUT/last.pt; without --config the run's own "
+                        "OUT/config.yaml is the base config")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--export", metavar="FILE.safetensors",
                         help="write the best (else last) weights with trackers.save")
+    _show_config_defaults(parser)
+
+
+def _show_config_defaults(parser: argparse.ArgumentParser) -> None:
+    """End each config flag's help with the config's default (the flags themselves default to
+    "not given", so that --config and OUT/config.yaml can supply the value)."""
+    from training.config import TrainConfig
+
+    defaults = TrainConfig().to_dict()
+    for action in parser._actions:
+        key = _RENAMED.get(action.dest, action.dest)
+        if key in defaults and action.help is not None:
+            action.help += f" (config default: {defaults[key]!r})"
 
 
 def build_config(args: argparse.Namespace):
     """The validated config of these arguments (raises ``ConfigError``)."""
+    from pathlib import Path
+
     from training.config import ConfigError, TrainConfig, config_from_dict, load_config, parse_value
 
-    cfg = load_config(args.config) if args.config else TrainConfig()
+    if args.config:
+        cfg = load_config(args.config)
+    elif args.resume and args.out and (Path(args.out) / "config.yaml").is_file():
+        cfg = load_config(Path(args.out) / "config.yaml")  # the run's own config
+    else:
+        cfg = TrainConfig()
     fields = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {_RENAMED.get(dest, dest): value for dest, value in vars(args).items()
               if value is not None and _RENAMED.get(dest, dest) in fields}
@@ -95,7 +127,7 @@ def export(run_dir, path: str) -> None:
     from pathlib import Path
 
     import trackers
-    from training.pretrain import tracker_from_checkpoint
+    from training.checkpoint import tracker_from_checkpoint
 
     run_dir = Path(run_dir)
     src = run_dir / "best.pt" if (run_dir / "best.pt").exists() else run_dir / "last.pt"

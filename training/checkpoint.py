@@ -1,0 +1,237 @@
+"""Training checkpoints (``RUN/best.pt``, ``RUN/last.pt``) and the run directory around them.
+
+A checkpoint is a ``torch.save`` dict (format :data:`CHECKPOINT_FORMAT`) holding the weights,
+their moving average (when the run keeps one), optimizer, scheduler, decorrelation memory, RNG
+states, epoch, step and the run's config. What this module guarantees:
+
+* **Atomic writes**: :func:`atomic_save` writes a temporary sibling (``.NAME.tmpPID``) and
+  renames it into place, so a killed process leaves either the previous file or the new one,
+  never a truncated one. Temporaries of dead processes are removed by :func:`remove_stale_temps`
+  when a run next uses the directory.
+* **No code runs on load**: every read is ``torch.load(weights_only=True)``.
+* **Validated reads**: :func:`read_checkpoint` refuses a file of another format naming the path;
+  :func:`check_resumable` refuses a checkpoint of another tracker or config naming every differing
+  key; :func:`load_weights` refuses non-finite weights naming the tensor.
+* **One log per run**: :func:`truncate_log` cuts ``log.jsonl`` back to the checkpoint's step on
+  resume, so a killed attempt's records never appear twice.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from training.config import IDENTITY_EXEMPT, TrainConfig
+
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "CheckpointError",
+    "atomic_save",
+    "check_resumable",
+    "config_differences",
+    "is_training_checkpoint",
+    "load_weights",
+    "read_checkpoint",
+    "remove_stale_temps",
+    "restore_rng_state",
+    "rng_state",
+    "tracker_from_checkpoint",
+    "truncate_log",
+]
+
+CHECKPOINT_FORMAT = 1
+
+
+class CheckpointError(ValueError):
+    """A file that is not a usable training checkpoint (the message names the file)."""
+
+
+def _temp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+
+
+def atomic_save(obj: Any, path: str | Path) -> Path:
+    """``torch.save(obj)`` to ``path`` through a temporary sibling and ``os.replace``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _temp_name(path)
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_temps(directory: str | Path) -> list[Path]:
+    """Delete the ``.NAME.tmpPID`` files in ``directory`` whose process is gone (left by a
+    ``SIGKILL`` between writing and renaming); returns the removed paths."""
+    removed = []
+    directory = Path(directory)
+    if not directory.is_dir():
+        return removed
+    for tmp in directory.glob(".*.tmp*"):
+        pid_text = tmp.name.rsplit(".tmp", 1)[1]
+        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
+            continue
+        tmp.unlink(missing_ok=True)
+        removed.append(tmp)
+    return removed
+
+
+def rng_state() -> dict[str, Any]:
+    """The global torch, numpy and python RNG states as tensors and plain values."""
+    mt, keys, pos, has_gauss, cached = np.random.get_state()
+    version, internal, gauss = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy_keys": torch.from_numpy(keys.astype(np.int64)),
+        "numpy_pos": int(pos),
+        "numpy_has_gauss": int(has_gauss),
+        "numpy_cached": float(cached),
+        "python": [int(version), list(internal), gauss],
+    }
+
+
+def restore_rng_state(state: Mapping[str, Any]) -> None:
+    """Set the global RNGs from :func:`rng_state`'s dict."""
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(
+        ("MT19937", state["numpy_keys"].numpy().astype(np.uint32), state["numpy_pos"],
+         state["numpy_has_gauss"], state["numpy_cached"])
+    )
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+
+
+def config_differences(checkpoint: Mapping[str, Any], current: Mapping[str, Any],
+                       label: str) -> str:
+    """``"key: checkpoint A vs <label> B, ..."`` for every key whose values differ; "" if none."""
+    keys = sorted(k for k in set(checkpoint) | set(current) if checkpoint.get(k) != current.get(k))
+    return ", ".join(f"{k}: checkpoint {checkpoint.get(k)!r} vs {label} {current.get(k)!r}"
+                     for k in keys)
+
+
+def _identity(values: Mapping[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in values.items() if k not in IDENTITY_EXEMPT}
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The checkpoint dict at ``path`` (CPU tensors, read without running code).
+
+    Raises :class:`CheckpointError` naming ``path`` when it cannot be read or is not a training
+    checkpoint of this format."""
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many unrelated types for foreign files
+        raise CheckpointError(f"{path} is not a training checkpoint: {exc}") from exc
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
+        found = ckpt.get("format") if isinstance(ckpt, dict) else None
+        raise CheckpointError(f"{path} is not a training checkpoint (format {found!r}, "
+                              f"expected {CHECKPOINT_FORMAT})")
+    return ckpt
+
+
+def is_training_checkpoint(path: str | Path) -> bool:
+    """Whether ``path`` is a readable training checkpoint (``best.pt`` / ``last.pt``)."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    try:
+        read_checkpoint(path)
+    except CheckpointError:
+        return False
+    return True
+
+
+def check_resumable(ckpt: Mapping[str, Any], cfg: TrainConfig, path: str | Path) -> None:
+    """Refuse (``CheckpointError``) to resume ``cfg`` from a checkpoint of another tracker or of
+    a config that differs in a key outside ``IDENTITY_EXEMPT`` (each such key is named)."""
+    if ckpt.get("tracker") != cfg.tracker:
+        raise CheckpointError(
+            f"refusing to resume: {path} is a checkpoint of tracker {ckpt.get('tracker')!r}, "
+            f"this run trains {cfg.tracker!r}"
+        )
+    # a key added to TrainConfig after the checkpoint was written ran at its default then
+    saved = {**_identity(TrainConfig().to_dict()), **_identity(ckpt["config"])}
+    details = config_differences(saved, _identity(cfg.to_dict()), "now")
+    if details:
+        raise CheckpointError(
+            f"refusing to resume from {path}: it was trained with a different config ({details})"
+        )
+
+
+def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """The validated weights and the config of a training checkpoint (``best.pt`` /
+    ``last.pt``): the weight average when the run kept one, else the model's weights.
+
+    Raises :class:`CheckpointError` naming ``path`` for a file that is not a training checkpoint
+    and naming the tensor for non-finite weights."""
+    ckpt = read_checkpoint(path)
+    average = ckpt.get("ema") or {}
+    weights = average.get("shadow") or ckpt["model"]
+    for name, tensor in weights.items():
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(f"{path}: tensor {name!r} holds NaN or inf values")
+    return weights, ckpt["config"]
+
+
+def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
+    """The tracker (CPU, eval mode) holding the validated weights of a training checkpoint
+    (:func:`load_weights`), ready for ``trackers.save`` or evaluation."""
+    import trackers
+    from training.config import tracker_config
+
+    weights, config = load_weights(path)
+    kwargs = tracker_config(config["tracker"], config.get("model_size", "default"),
+                            config.get("tracker_config"))
+    model = trackers.make(config["tracker"], **kwargs)
+    model.load_state_dict(weights)
+    return model.eval()
+
+
+def truncate_log(path: str | Path, step: int) -> int:
+    """Rewrite the JSON-lines log at ``path`` without the records a killed attempt wrote after
+    the checkpoint at ``step`` (records with a larger step, ``"data"`` records of that step, and
+    a torn last line); atomic. Returns the number of records dropped."""
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    kept, dropped = [], 0
+    for line in path.read_text().splitlines():
+        try:
+            record = json.loads(line)
+            rstep = int(record["step"])
+        except (ValueError, KeyError, TypeError):
+            dropped += 1
+            continue
+        if rstep > step or (rstep == step and record.get("kind") == "data" and step > 0):
+            dropped += 1
+            continue
+        kept.append(line)
+    if dropped:
+        tmp = _temp_name(path)
+        tmp.write_text("".join(f"{line}\n" for line in kept))
+        os.replace(tmp, path)
+    return dropped
