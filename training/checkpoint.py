@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from training.config import IDENTITY_EXEMPT, TrainConfig
+from training.config import IDENTITY_EXEMPT, LEGACY_DEFAULTS, TrainConfig
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -173,8 +173,9 @@ def check_resumable(ckpt: Mapping[str, Any], cfg: TrainConfig, path: str | Path)
             f"refusing to resume: {path} is a checkpoint of tracker {ckpt.get('tracker')!r}, "
             f"this run trains {cfg.tracker!r}"
         )
-    # a key added to TrainConfig after the checkpoint was written ran at its default then
-    saved = {**_identity(TrainConfig().to_dict()), **_identity(ckpt["config"])}
+    # a key added to TrainConfig after the checkpoint was written ran at its default then, or
+    # at its legacy value where the default changed since (recipe: v1)
+    saved = {**_identity(TrainConfig().to_dict()), **LEGACY_DEFAULTS, **_identity(ckpt["config"])}
     details = config_differences(saved, _identity(cfg.to_dict()), "now")
     if details:
         raise CheckpointError(

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Recipe v1 vs v2 pilot (docs/recipe.md, "Pilot"): P2B slim on the synthetic `small` world,
+# kitti-1, seeds 0 and 1, equal samples (100 steps of 16), two runs at a time; then OPE of each
+# run's last.pt on the small world's val split (eval seed 0), the template mode it was trained
+# with. Usage: PYTHONPATH=$PWD nice -n 10 bash experiments/recipe_pilot.sh runs/recipe-pilot
+set -euo pipefail
+OUT=${1:-runs/recipe-pilot}
+mkdir -p "$OUT"
+export OMP_NUM_THREADS=1
+train() {  # recipe seed
+  pointtrack train --tracker p2b --model-size slim --setting kitti-1 --preset small \
+    --epochs 1 --iters-per-epoch 100 --batch-size 16 --seed "$2" --threads 1 \
+    --val-max-tracklets 4 --val-max-frames 10 --no-progress \
+    --set recipe="$1" --out "$OUT/p2b-slim-$1-s$2" > "$OUT/train-$1-s$2.log" 2>&1
+}
+evaluate() {  # recipe seed template_mode
+  pointtrack eval --tracker "$OUT/p2b-slim-$1-s$2/last.pt" --dataset synthetic --preset small \
+    --split val --setting kitti-1 --template-mode "$3" --eval-seed 0 --num-envs 4 \
+    --no-progress --no-analysis --out "$OUT/eval-$1-s$2" > "$OUT/eval-$1-s$2.log" 2>&1
+}
+for seed in 0 1; do
+  train v1 "$seed" & train v2 "$seed" & wait
+done
+for seed in 0 1; do
+  evaluate v1 "$seed" first_and_previous & evaluate v2 "$seed" first_and_previous_merged & wait
+done
+echo done > "$OUT/DONE"
