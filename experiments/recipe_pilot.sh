@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Recipe v1 vs v2 pilot (docs/recipe.md, "Pilot"): P2B slim on the synthetic `small` world,
-# kitti-1, seeds 0 and 1, equal samples (100 steps of 16), two runs at a time; then OPE of each
+# kitti-1, seeds 0 and 1, equal samples (100 steps of 16), four runs at a time; then OPE of each
 # run's last.pt on the small world's val split (eval seed 0), the template mode it was trained
 # with. Usage: PYTHONPATH=$PWD nice -n 10 bash experiments/recipe_pilot.sh runs/recipe-pilot
 set -euo pipefail
@@ -18,10 +18,8 @@ evaluate() {  # recipe seed template_mode
     --split val --setting kitti-1 --template-mode "$3" --eval-seed 0 --num-envs 4 \
     --no-progress --no-analysis --out "$OUT/eval-$1-s$2" > "$OUT/eval-$1-s$2.log" 2>&1
 }
-for seed in 0 1; do
-  train v1 "$seed" & train v2 "$seed" & wait
-done
-for seed in 0 1; do
-  evaluate v1 "$seed" first_and_previous & evaluate v2 "$seed" first_and_previous_merged & wait
-done
+# all four at once: on a shared, loaded CPU each process gets its share of the cores
+train v1 0 & train v2 0 & train v1 1 & train v2 1 & wait
+evaluate v1 0 first_and_previous & evaluate v2 0 first_and_previous_merged &
+evaluate v1 1 first_and_previous & evaluate v2 1 first_and_previous_merged & wait
 echo done > "$OUT/DONE"
