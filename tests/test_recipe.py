@@ -465,3 +465,13 @@ def test_yaw_of_recovered_offset_is_wrapped():
                            zero_offset_candidate=True)
     d, dyaw = _offset(data[0])
     assert np.allclose(d, 0.0, atol=1e-5) and abs(wrap_yaw(dyaw)) < 1e-6
+
+
+def test_checkpoint_trackers_are_rebuilt_with_their_recipe():
+    from training.config import checkpoint_tracker_kwargs
+
+    v2 = dataclasses.asdict(config_from_dict({"tracker": "bat", "model_size": "slim"}))
+    assert checkpoint_tracker_kwargs(v2)["backbone"]["sampling"] == "fps"
+    old = {k: v for k, v in v2.items() if k != "recipe" and k not in RECIPES["v2"]}
+    assert "sampling" not in checkpoint_tracker_kwargs(old)["backbone"]  # a v1 run
+    assert checkpoint_tracker_kwargs({**old, "future_key": 1}) == checkpoint_tracker_kwargs(old)

@@ -202,12 +202,10 @@ def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
     """The tracker (CPU, eval mode) holding the validated weights of a training checkpoint
     (:func:`load_weights`), ready for ``trackers.save`` or evaluation."""
     import trackers
-    from training.config import tracker_config
+    from training.config import checkpoint_tracker_kwargs
 
     weights, config = load_weights(path)
-    kwargs = tracker_config(config["tracker"], config.get("model_size", "default"),
-                            config.get("tracker_config"))
-    model = trackers.make(config["tracker"], **kwargs)
+    model = trackers.make(config["tracker"], **checkpoint_tracker_kwargs(config))
     model.load_state_dict(weights)
     return model.eval()
 

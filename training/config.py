@@ -20,6 +20,7 @@ __all__ = [
     "RECIPES",
     "ConfigError",
     "TrainConfig",
+    "checkpoint_tracker_kwargs",
     "config_from_dict",
     "load_config",
     "parse_value",
@@ -248,6 +249,15 @@ class TrainConfig:
             backbone.setdefault("sampling", "fps")
             kwargs["backbone"] = backbone
         return kwargs
+
+
+def checkpoint_tracker_kwargs(config: dict[str, Any]) -> dict[str, Any]:
+    """The ``trackers.make`` kwargs of the tracker a training checkpoint's ``config`` trained
+    (keys it lacks at their :data:`LEGACY_DEFAULTS`, else the defaults; unknown keys ignored),
+    recipe items included (BAT's FPS)."""
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    values = {k: v for k, v in {**LEGACY_DEFAULTS, **config}.items() if k in known}
+    return TrainConfig(**values).make_kwargs()
 
 
 # Keys that may change between a run and its resumption (they do not change the result).
