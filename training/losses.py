@@ -16,8 +16,9 @@ seeds for GPT's ``template_vote``); ``c_i`` is that number of elements.
   and the objective is ``sum_k a_k pooled_k`` (``a_k`` the tracker's loss weights). With
   ``w_i = 1`` this is ``sum of the elements' losses / number of elements`` over the batch (up
   to the per-sample 1e-6 guard of the trackers' means). A sample with many target points thus
-  weighs more in ``vote`` than one with few, as in Open3DSOT; under DDP each rank pools its own
-  batch and the gradients are averaged.
+  weighs more in ``vote`` than one with few, as in Open3DSOT. Under DDP the denominators are
+  summed over the processes, so the result is the pooled loss of the global batch (as one
+  process would compute it).
 
 Models that are not :class:`trackers.base.MatchingTracker` (no known element counts) pool their
 ``total`` with ``c_i = 1``: the (weighted) mean over samples.
@@ -25,24 +26,41 @@ Models that are not :class:`trackers.base.MatchingTracker` (no known element cou
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import torch
 
 __all__ = ["LOSS_REDUCTIONS", "loss_counts", "pooled", "pooled_objective"]
 
 LOSS_REDUCTIONS = ("sample", "pooled")
+SumOverRanks = Callable[[torch.Tensor], torch.Tensor]
+"""An in-place all-reduce sum over the DDP processes (returns its argument)."""
 
 
 def pooled(per_sample: torch.Tensor, counts: torch.Tensor,
            weights: torch.Tensor | None = None) -> torch.Tensor:
     """``sum_i w_i c_i l_i / sum_i w_i c_i`` of per-sample means ``l (B,)`` over ``c (B,)``
     elements each, weights ``w (B,)`` (1 when None); 0 when no element counts."""
-    wc = counts.to(per_sample.dtype)
-    if weights is not None:
-        wc = wc * weights.to(per_sample.dtype)
-    den = wc.sum()
-    num = (wc * per_sample).sum()
+    return _pooled_terms([per_sample], [counts], weights)[0]
+
+
+def _pooled_terms(per_sample: list[torch.Tensor], counts: list[torch.Tensor],
+                  weights: torch.Tensor | None, sum_over_ranks: SumOverRanks | None = None,
+                  world: int = 1) -> torch.Tensor:
+    """The pooled value ``(K,)`` of K terms; with ``sum_over_ranks`` the denominators are the
+    whole DDP batch's (one all-reduce) and the numerators scaled by ``world``, so the gradient
+    average DDP takes is the pooled loss of the global batch."""
+    nums, dens = [], []
+    for loss, count in zip(per_sample, counts, strict=True):
+        wc = count.to(loss.dtype)
+        if weights is not None:
+            wc = wc * weights.to(loss.dtype)
+        nums.append((wc * loss).sum())
+        dens.append(wc.sum())
+    num, den = torch.stack(nums), torch.stack(dens).detach()
+    if sum_over_ranks is not None:
+        den = sum_over_ranks(den.clone())
+        num = num * world
     return torch.where(den > 0, num / den.clamp_min(torch.finfo(den.dtype).tiny), num * 0.0)
 
 
@@ -72,17 +90,24 @@ def loss_counts(model: torch.nn.Module, outputs: Mapping[str, torch.Tensor],
 
 def pooled_objective(model: torch.nn.Module, losses: Mapping[str, torch.Tensor],
                      outputs: Mapping[str, torch.Tensor], targets: Mapping[str, torch.Tensor],
-                     weights: torch.Tensor | None = None) -> torch.Tensor:
-    """The ``"pooled"`` objective (module docstring) of ``model.loss``'s per-sample ``losses``."""
+                     weights: torch.Tensor | None = None,
+                     sum_over_ranks: SumOverRanks | None = None, world: int = 1) -> torch.Tensor:
+    """The ``"pooled"`` objective (module docstring) of ``model.loss``'s per-sample ``losses``;
+    under DDP (``sum_over_ranks``: an in-place all-reduce sum, ``world`` processes) pooled over
+    the global batch."""
     from trackers.base import MatchingTracker
 
     if not isinstance(model, MatchingTracker):
         total = losses["total"]
-        return pooled(total, torch.ones_like(total), weights)
+        return _pooled_terms([total], [torch.ones_like(total)], weights, sum_over_ranks,
+                             world)[0]
     counts = loss_counts(model, outputs, targets)
     loss_weights = model.config.loss_weights
     missing = sorted(k for k in loss_weights if k not in counts)
     if missing:
         raise KeyError(f"pooled loss: no element counts for terms {', '.join(missing)} of "
                        f"{type(model).__name__}")
-    return sum(a * pooled(losses[k], counts[k], weights) for k, a in loss_weights.items())
+    keys = list(loss_weights)
+    values = _pooled_terms([losses[k] for k in keys], [counts[k] for k in keys], weights,
+                           sum_over_ranks, world)
+    return sum(loss_weights[k] * values[i] for i, k in enumerate(keys))

@@ -425,12 +425,18 @@ class Trainer:
 
     def _objective(self, losses: dict[str, torch.Tensor], outputs: dict[str, torch.Tensor],
                    targets: dict[str, torch.Tensor], weights: torch.Tensor | None) -> torch.Tensor:
-        if self.pooled:  # training.losses: scale-free in the weights, no world factor
-            return pooled_objective(self.model, losses, outputs, targets, weights)
+        if self.pooled:  # training.losses: pooled over the global batch under DDP
+            reduce = self._sum_over_ranks if self.world > 1 else None
+            return pooled_objective(self.model, losses, outputs, targets, weights, reduce,
+                                    self.world)
         per_sample = losses["total"]
         if weights is None:
             return per_sample.mean()
         return (weights * per_sample).sum() * self.world
+
+    def _sum_over_ranks(self, values: torch.Tensor) -> torch.Tensor:
+        self.pg.all_reduce(values)
+        return values
 
     def _check_finite(self, losses: dict[str, torch.Tensor], indices: torch.Tensor) -> None:
         total = losses["total"].detach()
@@ -497,7 +503,7 @@ class Trainer:
             self.step += 1
             n_batches += 1
             values = {k: float(v.detach().mean()) for k, v in losses.items()}
-            scaled = weights is not None and not self.pooled
+            scaled = (weights is not None and not self.pooled) or (self.pooled and self.world > 1)
             values["objective"] = float(loss.detach()) / (self.world if scaled else 1)
             if weights is not None:
                 values["ess"] = effective_sample_size(weights) if self.world == 1 else float("nan")
