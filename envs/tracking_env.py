@@ -71,7 +71,7 @@ __all__ = [
     "make_toy_dataset",
 ]
 
-TEMPLATE_MODES = ("first_and_previous", "first", "previous", "all")
+TEMPLATE_MODES = ("first_and_previous", "first", "previous", "all", "first_and_previous_merged")
 REFERENCE_MODES = ("prediction", "previous_gt", "current_gt")
 REWARDS = available_rewards()
 """The built-in reward names (:func:`envs.rewards.available_rewards` also lists registered ones)."""
@@ -144,8 +144,11 @@ class TrackingEnv(gym.Env):
     with the previous prediction scaled 1.25, each in its own box frame, concatenated),
     ``"first"`` (512 from the first frame), ``"previous"`` (512 from the previous frame),
     ``"all"`` (the crops of the first frame and of every previous prediction, each in its own box
-    frame, merged and resampled to 512 — P2B's "all previous results"). Point sets are resampled
-    with ``self.np_random`` (duplicates when too few, a random subset when too many), or, when an
+    frame, merged and resampled to 512 — P2B's "all previous results"),
+    ``"first_and_previous_merged"`` (the first and previous crops merged, first then previous,
+    and resampled to 512 together: Open3DSOT's ``firstandprevious`` shape aggregation).
+    Point sets are resampled with ``self.np_random`` (duplicates when too few, a random subset
+    when too many), or, when an
     episode seed is set, with a generator seeded by ``(episode_seed, tracklet id)`` at every
     reset; an empty set gives zeros and ``info["empty_template"]`` / ``info["empty_search"]``
     say so. Cropped point sets are the points ``envs.observation.crop_box_frame`` selects, rows
@@ -209,6 +212,9 @@ class TrackingEnv(gym.Env):
     - ``sampling``, ``template_mode``, ``reference`` (``"prediction"`` default, ``"previous_gt"``,
       ``"current_gt"``: the box the search region is cropped around), ``reward``,
       ``reward_kwargs``, ``max_action``, ``render_mode`` (``None`` or ``"rgb_array"``).
+    - ``search_enlargement``: ``(scale, offset_m)`` of the search crop (default ``(1.25, 2.0)``;
+      GPT's paper crops ``(1.0, 4.0)``); trackers must be evaluated with the region they were
+      trained with.
     - ``start_frame``, ``max_steps``: the defaults of the reset options (``0``, ``None``: whole
       tracklets).
     - ``episode_seed``: ``None`` (default: episodes draw from ``self.np_random`` one after the
@@ -253,6 +259,7 @@ class TrackingEnv(gym.Env):
         start_frame: int | str = 0,
         max_steps: int | None = None,
         observation_keys: Sequence[str] = OBSERVATION_KEYS,
+        search_enlargement: tuple[float, float] = SEARCH_ENLARGEMENT,
     ) -> None:
         _check_choice("sampling", sampling, SAMPLING_MODES)
         _check_choice("template_mode", template_mode, TEMPLATE_MODES)
@@ -319,6 +326,11 @@ class TrackingEnv(gym.Env):
         self.dataset = dataset
         self.sampling = sampling
         self.template_mode = template_mode
+        scale, offset_m = (float(v) for v in search_enlargement)
+        if not (scale > 0 and offset_m >= 0):
+            raise ValueError(f"search_enlargement must be (scale > 0, offset_m >= 0), got "
+                             f"{tuple(search_enlargement)}")
+        self.search_enlargement = (scale, offset_m)
         self.reference = reference
         self.max_action = a_max
         self.render_mode = render_mode
@@ -553,7 +565,8 @@ class TrackingEnv(gym.Env):
         boxes = [(ref, (70, 110, 255)), (gt, (40, 200, 40))]
         if pred is not None:
             boxes.append((pred, (230, 40, 40)))
-        half = 0.5 * SEARCH_SCALE * float(max(ref[3], ref[4])) + SEARCH_OFFSET_M
+        scale, offset_m = self.search_enlargement
+        half = 0.5 * scale * float(max(ref[3], ref[4])) + offset_m
         return render_birds_eye(points, boxes, frame_box=ref, extent_m=half)
 
     def close(self) -> None:
@@ -781,10 +794,10 @@ class TrackingEnv(gym.Env):
         ref = self._reference_box(t)
         # the crops around the reference box, taken in one pass: the search region, the opt-in
         # previous search region, and the previous template when its box is the reference
-        frames, enlargements = [t], [SEARCH_ENLARGEMENT]
+        frames, enlargements = [t], [self.search_enlargement]
         if self._previous_search:
             frames.append(t - 1)
-            enlargements.append(SEARCH_ENLARGEMENT)
+            enlargements.append(self.search_enlargement)
         new_prev = t >= start + 2 and mode != "first"  # the previous frame's template crop
         if new_prev and self.reference == "prediction":
             frames.append(t - 1)
@@ -808,6 +821,8 @@ class TrackingEnv(gym.Env):
             sets, outs = [self._first_crop], [template]
         elif mode == "previous":
             sets, outs = [self._prev_crop], [template]
+        elif mode == "first_and_previous_merged":
+            sets, outs = [np.concatenate([self._first_crop, self._prev_crop])], [template]
         else:
             merged = self._all_crops
             sets, outs = [np.concatenate(merged) if len(merged) > 1 else merged[0]], [template]

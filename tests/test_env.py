@@ -322,6 +322,10 @@ def test_template_modes(clean, mode):
         assert points_in_box(tpl, origin_box, scale=TEMPLATE_SCALE, offset_m=1e-4).all()
     elif mode == "previous":
         assert rows_in(tpl, prev) and not rows_in(tpl, first)
+    elif mode == "first_and_previous_merged":
+        assert rows_in(tpl, np.concatenate([first, prev]))
+        crop_sets = [{tuple(p) for p in c} for c in (first, prev)]
+        assert all(any(tuple(r) in c for r in tpl) for c in crop_sets)  # rows from both
     else:
         merged = np.concatenate(crops)
         assert rows_in(tpl, merged)

@@ -208,10 +208,13 @@ class Backbone(nn.Module):
         """The points in sampling order and that order (FPS first when ``sampling="fps"``)."""
         if self.config.sampling == "fps":  # FPS picks first (in FPS order), then the rest
             first = ops.farthest_point_sample(ops.gather(points, order), points.shape[1] // 2)
-            rest = torch.ones_like(order, dtype=torch.bool).scatter_(1, first, False)
-            pos = torch.arange(order.shape[1], device=order.device).expand_as(order)
-            rest_idx = pos[rest].view(order.shape[0], -1)
-            order = torch.gather(order, 1, torch.cat([first, rest_idx], dim=1))
+            # rank: FPS position for picked points, after them the rest in order; a cloud with
+            # fewer distinct points than picks makes FPS repeat an index (kept once)
+            n = order.shape[1]
+            picks = torch.arange(first.shape[1], device=order.device).expand_as(first)
+            rank = torch.full_like(order, n).scatter_reduce_(1, first, picks, "amin")
+            rank = rank * n + torch.arange(n, device=order.device)
+            order = torch.gather(order, 1, rank.argsort(dim=1))
         return ops.gather(points, order), order
 
 

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from training.config import IDENTITY_EXEMPT, TrainConfig
+from training.config import IDENTITY_EXEMPT, LEGACY_DEFAULTS, TrainConfig
 
 __all__ = [
     "CHECKPOINT_FORMAT",
@@ -173,8 +173,9 @@ def check_resumable(ckpt: Mapping[str, Any], cfg: TrainConfig, path: str | Path)
             f"refusing to resume: {path} is a checkpoint of tracker {ckpt.get('tracker')!r}, "
             f"this run trains {cfg.tracker!r}"
         )
-    # a key added to TrainConfig after the checkpoint was written ran at its default then
-    saved = {**_identity(TrainConfig().to_dict()), **_identity(ckpt["config"])}
+    # a key added to TrainConfig after the checkpoint was written ran at its default then, or
+    # at its legacy value where the default changed since (recipe: v1)
+    saved = {**_identity(TrainConfig().to_dict()), **LEGACY_DEFAULTS, **_identity(ckpt["config"])}
     details = config_differences(saved, _identity(cfg.to_dict()), "now")
     if details:
         raise CheckpointError(
@@ -201,12 +202,10 @@ def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
     """The tracker (CPU, eval mode) holding the validated weights of a training checkpoint
     (:func:`load_weights`), ready for ``trackers.save`` or evaluation."""
     import trackers
-    from training.config import tracker_config
+    from training.config import checkpoint_tracker_kwargs
 
     weights, config = load_weights(path)
-    kwargs = tracker_config(config["tracker"], config.get("model_size", "default"),
-                            config.get("tracker_config"))
-    model = trackers.make(config["tracker"], **kwargs)
+    model = trackers.make(config["tracker"], **checkpoint_tracker_kwargs(config))
     model.load_state_dict(weights)
     return model.eval()
 

@@ -16,8 +16,11 @@ from typing import Any
 
 __all__ = [
     "IDENTITY_EXEMPT",
+    "LEGACY_DEFAULTS",
+    "RECIPES",
     "ConfigError",
     "TrainConfig",
+    "checkpoint_tracker_kwargs",
     "config_from_dict",
     "load_config",
     "parse_value",
@@ -36,6 +39,29 @@ def tracker_config(tracker: str, model_size: str = "default", extra: dict | None
 
 WEIGHTINGS = ("none", "decorrelation", "sam")
 DATASETS = ("synthetic", "kitti", "nuscenes")
+LOSS_REDUCTIONS = ("sample", "pooled")
+INITS = ("default", "kaiming")
+
+# The training recipes (docs/recipe.md): v1 is the recipe of every checkpoint shipped before
+# issue 24; v2 follows Open3DSOT's code (the reference framework of P2B and BAT) item by item.
+# Each key is also a TrainConfig field; None there means "the recipe's value".
+RECIPES: dict[str, dict[str, Any]] = {
+    "v1": {"zero_offset_candidate": False, "min_crop_points": 0, "template_union": False,
+           "frame0_samples": False, "limit_box": False, "loss_reduction": "sample",
+           "adam_beta1": 0.9, "adam_eps": 1e-8, "bat_fps": False, "init": "default",
+           "gpt_search_region": False},
+    "v2": {"zero_offset_candidate": True, "min_crop_points": 21, "template_union": True,
+           "frame0_samples": True, "limit_box": True, "loss_reduction": "pooled",
+           "adam_beta1": 0.5, "adam_eps": 1e-6, "bat_fps": True, "init": "kaiming",
+           "gpt_search_region": True},
+}
+GPT_SEARCH_ENLARGEMENT = (1.0, 4.0)
+"""``(scale, offset_m)`` of GPT's search region (its paper: the previous box plus 4 m on every
+edge, no scaling), used for GPT when ``gpt_search_region`` is on."""
+
+# Values of keys a training checkpoint written before the key existed ran with (not the
+# current default): runs before recipe v2 are v1 runs.
+LEGACY_DEFAULTS: dict[str, Any] = {"recipe": "v1"}
 
 
 class ConfigError(ValueError):
@@ -70,6 +96,21 @@ class TrainConfig:
     # object resizing, scale per box axis ~ U(1 - a, 1 + a); 0 = off (the papers' samples); see
     # training.samples
     size_jitter: float = 0.0
+    # the training recipe (v1 | v2, see RECIPES and docs/recipe.md) and its items, each
+    # overridable on its own (null = the recipe's value). v1 stays the default until the
+    # ablation of docs/recipe.md has run: v2's pilot runs did not yet train (docs/recipe.md)
+    recipe: str = "v1"
+    zero_offset_candidate: bool | None = None  # candidate 0 of every frame: unperturbed search
+    min_crop_points: int | None = None  # redraw samples whose template or search crop has fewer
+    template_union: bool | None = None  # 512 template points from the first + previous union
+    frame0_samples: bool | None = None  # also sample t = 0 (previous = current = frame 0)
+    limit_box: bool | None = None  # Open3DSOT's limit_box: large search offsets redrawn U(-1, 1)
+    loss_reduction: str | None = None  # sample (per-sample means) | pooled (over the batch)
+    adam_beta1: float | None = None
+    adam_eps: float | None = None
+    bat_fps: bool | None = None  # BAT's backbone samples by farthest-point sampling
+    init: str | None = None  # default (torch's) | kaiming (kaiming-normal weights)
+    gpt_search_region: bool | None = None  # GPT crops its search region by +4 m, no x1.25
     # optimisation
     epochs: int = 36
     batch_size: int = 48
@@ -158,6 +199,18 @@ class TrainConfig:
             bad("grad_clip", "must be > 0 or null")
         if self.weighting == "decorrelation" and self.batch_size < 2:
             bad("batch_size", "decorrelation weighting needs batch_size >= 2")
+        if self.recipe not in RECIPES:
+            bad("recipe", f"must be one of {', '.join(RECIPES)}")
+        if self.loss_reduction is not None and self.loss_reduction not in LOSS_REDUCTIONS:
+            bad("loss_reduction", f"must be one of {', '.join(LOSS_REDUCTIONS)} or null")
+        if self.init is not None and self.init not in INITS:
+            bad("init", f"must be one of {', '.join(INITS)} or null")
+        if self.min_crop_points is not None and self.min_crop_points < 0:
+            bad("min_crop_points", "must be >= 0 or null")
+        if self.adam_beta1 is not None and not 0 <= self.adam_beta1 < 1:
+            bad("adam_beta1", "must be in [0, 1) or null")
+        if self.adam_eps is not None and not self.adam_eps > 0:
+            bad("adam_eps", "must be > 0 or null")
         if self.device != "cpu" and not self.device.startswith("cuda"):
             bad("device", "must be cpu or cuda[:N]")
         if errors:
@@ -167,9 +220,48 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    def recipe_value(self, key: str) -> Any:
+        """The value of recipe item ``key``: the field when set, else the recipe's."""
+        value = getattr(self, key)
+        return RECIPES[self.recipe][key] if value is None else value
+
+    def recipe_values(self) -> dict[str, Any]:
+        """Every recipe item's value (see :data:`RECIPES`)."""
+        return {key: self.recipe_value(key) for key in RECIPES["v2"]}
+
+    def search_enlargement(self) -> tuple[float, float]:
+        """``(scale, offset_m)`` of the search region in training and in the val env."""
+        from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
+
+        if self.tracker == "gpt" and self.recipe_value("gpt_search_region"):
+            return GPT_SEARCH_ENLARGEMENT
+        return (SEARCH_SCALE, SEARCH_OFFSET_M)
+
+    def env_kwargs(self) -> dict[str, Any]:
+        """The ``TrackingEnv`` options a tracker trained with this config must be evaluated
+        with (its template composition and search region), as in training."""
+        mode = "first_and_previous_merged" if self.recipe_value("template_union") else (
+            "first_and_previous")
+        return {"template_mode": mode, "search_enlargement": self.search_enlargement()}
+
     def make_kwargs(self) -> dict:
-        """Keyword arguments of ``trackers.make(self.tracker, ...)``."""
-        return tracker_config(self.tracker, self.model_size, self.tracker_config)
+        """Keyword arguments of ``trackers.make(self.tracker, ...)`` (BAT's backbone samples by
+        farthest-point sampling when ``bat_fps`` is on, unless ``tracker_config`` says)."""
+        kwargs = tracker_config(self.tracker, self.model_size, self.tracker_config)
+        if self.tracker == "bat" and self.recipe_value("bat_fps"):
+            backbone = dict(kwargs.get("backbone") or {})
+            backbone.setdefault("sampling", "fps")
+            kwargs["backbone"] = backbone
+        return kwargs
+
+
+def checkpoint_tracker_kwargs(config: dict[str, Any]) -> dict[str, Any]:
+    """The ``trackers.make`` kwargs of the tracker a training checkpoint's ``config`` trained
+    (keys it lacks at their :data:`LEGACY_DEFAULTS`, else the defaults; unknown keys ignored),
+    recipe items included (BAT's FPS)."""
+    known = {f.name for f in dataclasses.fields(TrainConfig)}
+    values = {k: v for k, v in {**LEGACY_DEFAULTS, **config}.items() if k in known}
+    return TrainConfig(**values).make_kwargs()
 
 
 # Keys that may change between a run and its resumption (they do not change the result).

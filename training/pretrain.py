@@ -66,6 +66,7 @@ from training.checkpoint import (
     truncate_log,
 )
 from training.config import TrainConfig
+from training.losses import pooled_objective
 from training.sam import SAM
 from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
@@ -113,7 +114,21 @@ def _dist_info() -> tuple[int, int]:
 def default_model_factory(cfg: TrainConfig) -> torch.nn.Module:
     import trackers
 
-    return trackers.make(cfg.tracker, **cfg.make_kwargs())
+    model = trackers.make(cfg.tracker, **cfg.make_kwargs())
+    if cfg.recipe_value("init") == "kaiming":
+        kaiming_init(model)
+    return model
+
+
+def kaiming_init(model: torch.nn.Module) -> None:
+    """Kaiming-normal weights (fan in, ReLU gain) and zero biases for every linear and
+    convolution layer (recipe v2: Open3DSOT's initialisation), from torch's global generator
+    (seeded by the trainer)."""
+    for module in model.modules():
+        if isinstance(module, torch.nn.Linear | torch.nn.Conv1d | torch.nn.Conv2d):
+            torch.nn.init.kaiming_normal_(module.weight)
+            if module.bias is not None:
+                torch.nn.init.zeros_(module.bias)
 
 
 def default_train_data(cfg: TrainConfig):
@@ -135,10 +150,17 @@ def default_train_data(cfg: TrainConfig):
                              seed=cfg.seed)
         data.root = str(root)
         return data
+    recipe = cfg.recipe_values()
     data = TrackingSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed,
-                           size_jitter=cfg.size_jitter)
+                           size_jitter=cfg.size_jitter, search_enlargement=cfg.search_enlargement(),
+                           **{k: recipe[k] for k in SAMPLE_RECIPE_KEYS})
     data.root = str(root)  # logged: a synthetic world's folder name carries its generator hash
     return data
+
+
+SAMPLE_RECIPE_KEYS = ("zero_offset_candidate", "min_crop_points", "template_union",
+                      "frame0_samples", "limit_box")
+"""The recipe items that are ``TrackingSamples`` options."""
 
 
 def _truncate(tracklet, max_frames: int | None):
@@ -175,7 +197,8 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
 
         def make_env():
             return TrackingEnv(holder, setting=st, categories=st.observed, sampling="sequential",
-                               observation_keys=observation_keys_for([model]))
+                               observation_keys=observation_keys_for([model]),
+                               **cfg.env_kwargs())
 
         env = gym.vector.SyncVectorEnv([make_env] * n_envs) if n_envs > 1 else make_env()
         try:
@@ -255,8 +278,10 @@ class Trainer:
                 f"only {len(self.data)} training samples, fewer than one batch of {cfg.batch_size}"
             )
         self.base_opt = torch.optim.Adam(
-            self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay
+            self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
+            betas=(cfg.recipe_value("adam_beta1"), 0.999), eps=cfg.recipe_value("adam_eps"),
         )
+        self.pooled = cfg.recipe_value("loss_reduction") == "pooled"
         self.scheduler = torch.optim.lr_scheduler.StepLR(
             self.base_opt, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma
         )
@@ -419,10 +444,20 @@ class Trainer:
         local = w_global[self.rank :: self.world] if self.world > 1 else w_global
         return local.to(self.device)
 
-    def _objective(self, per_sample: torch.Tensor, weights: torch.Tensor | None) -> torch.Tensor:
+    def _objective(self, losses: dict[str, torch.Tensor], outputs: dict[str, torch.Tensor],
+                   targets: dict[str, torch.Tensor], weights: torch.Tensor | None) -> torch.Tensor:
+        if self.pooled:  # training.losses: pooled over the global batch under DDP
+            reduce = self._sum_over_ranks if self.world > 1 else None
+            return pooled_objective(self.model, losses, outputs, targets, weights, reduce,
+                                    self.world)
+        per_sample = losses["total"]
         if weights is None:
             return per_sample.mean()
         return (weights * per_sample).sum() * self.world
+
+    def _sum_over_ranks(self, values: torch.Tensor) -> torch.Tensor:
+        self.pg.all_reduce(values)
+        return values
 
     def _check_finite(self, losses: dict[str, torch.Tensor], indices: torch.Tensor) -> None:
         total = losses["total"].detach()
@@ -465,13 +500,13 @@ class Trainer:
             losses = self.model.loss(outputs, targets)
             self._check_finite(losses, indices)
             weights = self._sample_weights(outputs)
-            loss = self._objective(losses["total"], weights)
+            loss = self._objective(losses, outputs, targets, weights)
             self.base_opt.zero_grad(set_to_none=True)
             loss.backward()
             if self.sam is not None:
                 def closure(batch=batch, targets=targets, weights=weights):
                     out2 = self.net(batch)
-                    l2 = self._objective(self.model.loss(out2, targets)["total"], weights)
+                    l2 = self._objective(self.model.loss(out2, targets), out2, targets, weights)
                     l2.backward()
                     return l2
 
@@ -489,7 +524,8 @@ class Trainer:
             self.step += 1
             n_batches += 1
             values = {k: float(v.detach().mean()) for k, v in losses.items()}
-            values["objective"] = float(loss.detach()) / (self.world if weights is not None else 1)
+            scaled = (weights is not None and not self.pooled) or (self.pooled and self.world > 1)
+            values["objective"] = float(loss.detach()) / (self.world if scaled else 1)
             if weights is not None:
                 values["ess"] = effective_sample_size(weights) if self.world == 1 else float("nan")
             for k, v in values.items():

@@ -121,7 +121,25 @@ class TrackingSamples(Dataset):
         candidates_per_frame: samples per frame (candidate 0 has an unjittered previous box).
         seed: base seed; with the epoch and the index it determines every random draw.
         size_jitter: ``a`` of the object resizing (see the module docstring); 0 turns it off.
+        search_enlargement: ``(scale, offset_m)`` of the search crop (the env's
+            ``search_enlargement``; default P2B's 1.25 and 2 m).
+
+    Recipe items (docs/recipe.md; the defaults are recipe v1, ``training.config.RECIPES``):
+        zero_offset_candidate: candidate 0 of every frame crops its search region around the
+            exact ground truth (Open3DSOT, when there is more than one candidate).
+        min_crop_points: a sample whose template crops hold fewer points together (their
+            union), or whose search crop holds fewer, is replaced by another one drawn
+            uniformly from the whole data set (Open3DSOT's ``> 20`` assertions: 21); 0 = off.
+        template_union: the template is ``template_size`` points drawn from the union of the
+            first and previous crops (each in its own box frame; the env's
+            ``"first_and_previous_merged"``) instead of half from each.
+        frame0_samples: frame ``t = 0`` is sampled too, its previous frame being frame 0.
+        limit_box: Open3DSOT's ``limit_box``: the search offset is drawn in the ground-truth
+            box frame, and a longitudinal offset above the box width, or a lateral one above
+            ``min(width, 2 m)``, is redrawn ``U(-1, 1)`` m (one-sided, as there).
     """
+
+    MAX_REDRAWS = 100
 
     def __init__(
         self,
@@ -132,6 +150,12 @@ class TrackingSamples(Dataset):
         template_size: int = TEMPLATE_SIZE,
         search_size: int = SEARCH_SIZE,
         size_jitter: float = 0.0,
+        search_enlargement: tuple[float, float] = (SEARCH_SCALE, SEARCH_OFFSET_M),
+        zero_offset_candidate: bool = False,
+        min_crop_points: int = 0,
+        template_union: bool = False,
+        frame0_samples: bool = False,
+        limit_box: bool = False,
     ) -> None:
         self.tracklets = [tr for tr in tracklets if len(tr) >= 2]
         if not self.tracklets:
@@ -140,13 +164,27 @@ class TrackingSamples(Dataset):
             raise ValueError("candidates_per_frame must be >= 1")
         if not 0.0 <= size_jitter < 1.0:
             raise ValueError(f"size_jitter must be in [0, 1), got {size_jitter}")
+        if min_crop_points < 0:
+            raise ValueError(f"min_crop_points must be >= 0, got {min_crop_points}")
+        scale, offset_m = (float(v) for v in search_enlargement)
+        if not (scale > 0 and offset_m >= 0):
+            raise ValueError(f"search_enlargement must be (scale > 0, offset_m >= 0), got "
+                             f"{search_enlargement}")
         self.size_jitter = float(size_jitter)
         self.candidates = candidates_per_frame
         self.seed = int(seed)
         self.epoch = 0
         self.template_size = template_size
         self.search_size = search_size
-        frames = np.array([len(tr) - 1 for tr in self.tracklets], dtype=np.int64)
+        self.search_scale, self.search_offset_m = scale, offset_m
+        self.zero_offset_candidate = bool(zero_offset_candidate)
+        self.min_crop_points = int(min_crop_points)
+        self.template_union = bool(template_union)
+        self.frame0_samples = bool(frame0_samples)
+        self.limit_box = bool(limit_box)
+        first = 0 if frame0_samples else 1
+        frames = np.array([len(tr) - first for tr in self.tracklets], dtype=np.int64)
+        self._first_t = first
         self._starts = np.concatenate([[0], np.cumsum(frames)])
 
     def __len__(self) -> int:
@@ -156,12 +194,13 @@ class TrackingSamples(Dataset):
         self.epoch = int(epoch)
 
     def locate(self, index: int) -> tuple[int, int, int]:
-        """``index`` -> ``(tracklet position, frame t >= 1, candidate)``."""
+        """``index`` -> ``(tracklet position, frame t, candidate)`` (``t >= 1``, or ``t >= 0``
+        with ``frame0_samples``)."""
         if not 0 <= index < len(self):
             raise IndexError(f"sample index {index} out of range [0, {len(self)})")
         item, cand = divmod(int(index), self.candidates)
         k = int(np.searchsorted(self._starts, item, side="right") - 1)
-        return k, item - int(self._starts[k]) + 1, cand
+        return k, item - int(self._starts[k]) + self._first_t, cand
 
     def describe(self, index: int) -> str:
         k, t, c = self.locate(index)
@@ -169,52 +208,92 @@ class TrackingSamples(Dataset):
         return f"sample {index} (tracklet {tr.tracklet_id} {tr.category}, frame {t}, candidate {c})"
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        rng = np.random.default_rng([self.seed, self.epoch, int(index)])
+        source = int(index)
+        for attempt in range(1, self.MAX_REDRAWS + 2):
+            sample, n_template, n_search = self._build(source, rng)
+            if min(n_template, n_search) >= self.min_crop_points:
+                sample["index"] = torch.tensor(int(index), dtype=torch.int64)
+                return sample
+            # Open3DSOT's redraw: another sample uniformly from the whole data set, from a
+            # generator of its own so the result depends only on (seed, epoch, index)
+            rng = np.random.default_rng([self.seed, self.epoch, int(index), attempt])
+            source = int(rng.integers(len(self)))
+        raise ValueError(
+            f"{self.describe(int(index))}: no sample with >= {self.min_crop_points} template and "
+            f"search points in {self.MAX_REDRAWS} redraws (lower min_crop_points)")
+
+    def _search_offset(self, gt: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The Gaussian search offset ``(dx, dy)`` in the LiDAR frame, m (see ``limit_box``)."""
+        d = rng.normal(0.0, SEARCH_SIGMA_XY_M, 2)
+        if not self.limit_box:
+            return d  # isotropic: drawn directly in the LiDAR frame
+        width = float(gt[4])
+        if d[0] > width:
+            d[0] = rng.uniform(-1.0, 1.0)
+        if d[1] > min(width, 2.0):
+            d[1] = rng.uniform(-1.0, 1.0)
+        c, s = math.cos(gt[6]), math.sin(gt[6])
+        return np.array([c * d[0] - s * d[1], s * d[0] + c * d[1]])
+
+    def _build(self, index: int, rng: np.random.Generator
+               ) -> tuple[dict[str, torch.Tensor], int, int]:
+        """Sample ``index`` drawn with ``rng``, its template points (both crops) and its search
+        points (before resampling)."""
         k, t, cand = self.locate(index)
         tr = self.tracklets[k]
-        rng = np.random.default_rng([self.seed, self.epoch, int(index)])
         boxes = np.asarray(tr.boxes, dtype=np.float64)
         stretch = None
         if self.size_jitter > 0:
             stretch = rng.uniform(1.0 - self.size_jitter, 1.0 + self.size_jitter, 3)
             boxes = boxes.copy()
             boxes[:, 3:6] *= stretch
-        box0, prev_gt, gt = boxes[0], boxes[t - 1], boxes[t]
+        t_prev = max(t - 1, 0)
+        box0, prev_gt, gt = boxes[0], boxes[t_prev], boxes[t]
 
         # template: first GT + (jittered) previous GT, each in its own frame
         prev = prev_gt.copy()
         if cand > 0:
             prev[0:2] += rng.uniform(-JITTER_XY_M, JITTER_XY_M, 2)
             prev[6] += rng.uniform(-JITTER_YAW_RAD, JITTER_YAW_RAD)
-        # search region around the Gaussian-perturbed current GT
+        # search region around the Gaussian-perturbed current GT (exact GT for candidate 0
+        # under zero_offset_candidate, as Open3DSOT's when it has several candidates)
         ref = gt.copy()
-        ref[0:2] += rng.normal(0.0, SEARCH_SIGMA_XY_M, 2)
-        ref[6] += rng.normal(0.0, SEARCH_SIGMA_YAW_RAD)
+        if not (self.zero_offset_candidate and cand == 0 and self.candidates > 1):
+            ref[0:2] += self._search_offset(gt, rng)
+            ref[6] += rng.normal(0.0, SEARCH_SIGMA_YAW_RAD)
         ref[6] = (ref[6] + math.pi) % (2 * math.pi) - math.pi
         prev[6] = (prev[6] + math.pi) % (2 * math.pi) - math.pi
 
         first_crop = _crop_stretched(tr.points(0), box0, box0, TEMPLATE_SCALE, 0.0, stretch)
-        prev_crop = _crop_stretched(tr.points(t - 1), prev_gt, prev, TEMPLATE_SCALE, 0.0, stretch)
-        search_crop = _crop_stretched(tr.points(t), gt, ref, SEARCH_SCALE, SEARCH_OFFSET_M,
-                                      stretch)
-        # resampled as the env's observations are: one call, the template halves in place
-        half = self.template_size // 2
-        template = np.empty((self.template_size, 3), np.float32)
-        search = np.empty((self.search_size, 3), np.float32)
-        a, b = template[:half], template[half:]
-        m_a, m_b, m_s = resample_into([first_crop, prev_crop, search_crop], [a, b, search], rng)
-
+        prev_crop = _crop_stretched(tr.points(t_prev), prev_gt, prev, TEMPLATE_SCALE, 0.0,
+                                    stretch)
+        search_crop = _crop_stretched(tr.points(t), gt, ref, self.search_scale,
+                                      self.search_offset_m, stretch)
         own0 = np.array([0, 0, 0, *box0[3:6], 0.0])
         prev_in_own = boxes_in_frame(prev_gt, prev)
         search_box = boxes_in_frame(gt, ref)
-        labels_a = points_in_box(a, own0) & (m_a > 0)
-        labels_b = points_in_box(b, prev_in_own) & (m_b > 0)
+        template = np.empty((self.template_size, 3), np.float32)
+        search = np.empty((self.search_size, 3), np.float32)
+        if self.template_union:
+            template_labels, centers, m_s = self._union_template(
+                first_crop, prev_crop, own0, prev_in_own, search_crop, template, search, rng)
+        else:
+            # resampled as the env's observations are: one call, the template halves in place
+            half = self.template_size // 2
+            a, b = template[:half], template[half:]
+            m_a, m_b, m_s = resample_into([first_crop, prev_crop, search_crop], [a, b, search],
+                                          rng)
+            labels_a = points_in_box(a, own0) & (m_a > 0)
+            labels_b = points_in_box(b, prev_in_own) & (m_b > 0)
+            template_labels = np.concatenate([labels_a, labels_b]).astype(np.float32)
+            centers = np.zeros((self.template_size, 3), np.float32)
+            centers[half:] = prev_in_own[:3]
         search_labels = points_in_box(search, search_box) & (m_s > 0)
-        centers = np.zeros((self.template_size, 3), np.float32)
-        centers[half:] = prev_in_own[:3]
         motion = offset_between(boxes[t - 2], prev_gt) if t >= 2 else np.zeros(4)
 
         f32 = torch.float32
-        return {
+        sample = {
             "template": torch.from_numpy(template),
             "search": torch.from_numpy(search),
             "size": torch.as_tensor(box0[3:6], dtype=f32),
@@ -222,11 +301,31 @@ class TrackingSamples(Dataset):
             "search_box": torch.as_tensor(search_box, dtype=f32),
             "search_labels": torch.from_numpy(search_labels.astype(np.float32)),
             "template_centers": torch.from_numpy(centers),
-            "template_labels": torch.from_numpy(
-                np.concatenate([labels_a, labels_b]).astype(np.float32)
-            ),
+            "template_labels": torch.from_numpy(template_labels),
             "index": torch.tensor(int(index), dtype=torch.int64),
         }
+        return sample, len(first_crop) + len(prev_crop), len(search_crop)
+
+    def _union_template(self, first_crop: np.ndarray, prev_crop: np.ndarray, own0: np.ndarray,
+                        prev_in_own: np.ndarray, search_crop: np.ndarray, template: np.ndarray,
+                        search: np.ndarray, rng: np.random.Generator
+                        ) -> tuple[np.ndarray, np.ndarray, int]:
+        """Fill ``template`` from the union of the two template crops (first, then previous:
+        the env's merge order) and ``search``; each union point carries its label and its
+        crop's target centre through the resampling. Returns the template labels ``(T,)``,
+        centres ``(T, 3)`` and the search crop's point count."""
+        parts = []
+        for crop, box in ((first_crop, own0), (prev_crop, prev_in_own)):
+            part = np.empty((len(crop), 7), np.float32)
+            part[:, :3] = crop
+            part[:, 3] = points_in_box(crop, box)
+            part[:, 4:] = box[:3]
+            parts.append(part)
+        union = np.concatenate(parts)
+        rich = np.empty((self.template_size, 7), np.float32)
+        _, m_s = resample_into([union, search_crop], [rich, search], rng)
+        template[:] = rich[:, :3]
+        return np.ascontiguousarray(rich[:, 3]), np.ascontiguousarray(rich[:, 4:]), m_s
 
 
 BATCH_KEYS = ("template", "search", "size", "motion")

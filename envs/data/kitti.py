@@ -43,7 +43,9 @@ __all__ = [
     "MissingSceneWarning",
     "NonFinitePointsWarning",
     "SceneScans",
+    "BOX_CONVENTIONS",
     "camera_to_lidar_boxes",
+    "camera_to_open3dsot_boxes",
     "declare_scenes",
     "expected_scenes",
     "label_path",
@@ -260,6 +262,40 @@ def camera_to_lidar_boxes(hwl_xyz_ry: np.ndarray, calib: Calibration) -> np.ndar
     out[..., 4] = w
     out[..., 5] = h
     out[..., 6] = yaw
+    return out
+
+
+BOX_CONVENTIONS = ("lidar", "open3dsot")
+"""``KittiTracking(box_convention=...)``: ``"lidar"`` (:func:`camera_to_lidar_boxes`, through
+``R0_rect``) or ``"open3dsot"`` (:func:`camera_to_open3dsot_boxes`, Open3DSOT's boxes)."""
+
+
+def camera_to_open3dsot_boxes(hwl_xyz_ry: np.ndarray, calib: Calibration) -> np.ndarray:
+    """KITTI label boxes -> the LiDAR boxes Open3DSOT's KITTI loader builds
+    (``coordinate_mode="velodyne"``), for comparisons with published tables.
+
+    Open3DSOT treats the labels as if in the unrectified camera frame (no ``R0_rect``): centre
+    ``= Tr_velo_to_cam^-1 (x, y - h / 2, z)``, and a yaw about LiDAR +z of ``-ry - pi / 2``
+    whatever the calibration's rotation. Same layout as :func:`camera_to_lidar_boxes`:
+    ``(..., 7)`` -> ``(..., 7)`` float64 ``(x, y, z, l, w, h, yaw)``, yaw wrapped to
+    ``[-pi, pi)``.
+    """
+    cam = np.asarray(hwl_xyz_ry, dtype=np.float64)
+    if cam.shape[-1] != 7:
+        raise ValueError(
+            f"camera boxes must have shape (..., 7) [h, w, l, x, y, z, ry]; got {cam.shape}"
+        )
+    velo_to_cam = np.eye(4)
+    velo_to_cam[:3, :] = calib.tr_velo_to_cam
+    inv = np.linalg.inv(velo_to_cam)
+    centre_cam = cam[..., 3:6].copy()
+    centre_cam[..., 1] -= 0.5 * cam[..., 0]
+    out = np.empty(cam.shape, dtype=np.float64)
+    out[..., 0:3] = centre_cam @ inv[:3, :3].T + inv[:3, 3]
+    out[..., 3] = cam[..., 2]
+    out[..., 4] = cam[..., 1]
+    out[..., 5] = cam[..., 0]
+    out[..., 6] = wrap_yaw(-cam[..., 6] - 0.5 * np.pi)
     return out
 
 
@@ -690,6 +726,9 @@ class KittiTracking:
             without a scan does (see :class:`SceneScans`).
         allow_missing_scenes: go on without the split's missing scenes, with a
             :class:`MissingSceneWarning` listing them.
+        box_convention: ``"lidar"`` (default; physically right, through ``R0_rect``) or
+            ``"open3dsot"`` (Open3DSOT's boxes, to compare with published tables; see
+            :data:`BOX_CONVENTIONS` and docs/recipe.md).
 
     Attributes:
         tracklets: list ordered by scene, then track id.
@@ -705,7 +744,12 @@ class KittiTracking:
         cache_size: int = 8,
         missing_scans: str = "raise",
         allow_missing_scenes: bool = False,
+        box_convention: str = "lidar",
     ) -> None:
+        if box_convention not in BOX_CONVENTIONS:
+            raise ValueError(f"box_convention must be one of {', '.join(BOX_CONVENTIONS)}; got "
+                             f"{box_convention!r}")
+        self.box_convention = box_convention
         if missing_scans not in ("raise", "empty"):
             raise ValueError(f"missing_scans must be 'raise' or 'empty'; got {missing_scans!r}")
         self.root = Path(root)
@@ -753,7 +797,9 @@ class KittiTracking:
         idx = idx[np.lexsort((table.frame[idx], table.track_id[idx]))]
         calib = read_calibration(self.root / "calib" / f"{scene}.txt")
         cam = table.values[idx][:, [10, 11, 12, 13, 14, 15, 16]]  # h w l x y z ry
-        boxes = camera_to_lidar_boxes(cam, calib)
+        convert = camera_to_open3dsot_boxes if self.box_convention == "open3dsot" else (
+            camera_to_lidar_boxes)
+        boxes = convert(cam, calib)
         frames = table.frame[idx]
         tids = table.track_id[idx]
         same_track = tids[1:] == tids[:-1]

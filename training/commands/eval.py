@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from envs.tracking_env import TEMPLATE_MODES
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
@@ -90,7 +92,7 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--template-mode",
         default="first_and_previous",
-        choices=("first_and_previous", "first", "previous", "all"),
+        choices=TEMPLATE_MODES,
         help="which earlier frames give the template points",
     )
     parser.add_argument(
