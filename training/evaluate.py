@@ -45,7 +45,12 @@ __all__ = [
 
 def load_tracker(name_or_path: str) -> Any:
     """A tracker by name or checkpoint path through ``trackers.load`` (baselines as a fallback
-    while ``trackers.load`` is unavailable)."""
+    while ``trackers.load`` is unavailable). A ``--algo residual`` result of ``pointtrack
+    finetune`` (``residual.safetensors`` or its run directory) loads as a ResidualTracker."""
+    from training.finetune import ResidualTracker
+
+    if ResidualTracker.is_residual_file(name_or_path):
+        return ResidualTracker.load(name_or_path)
     try:
         import trackers
 
