@@ -195,6 +195,7 @@ class TrackerPolicy(ActorCriticPolicy):
             p.requires_grad_(False)
         for p in self._trainable:
             p.requires_grad_(True)
+        self._no_grad_frozen_stages()
         self._actor_frozen = False
         own = [*self.value_head.parameters(), self.log_std]
         self.optimizer = self.optimizer_class(
@@ -286,6 +287,15 @@ class TrackerPolicy(ActorCriticPolicy):
                                  f"{self.tracker.name!r} has no {name!r} module")
             params.extend(module.parameters())
         return params
+
+    def _no_grad_frozen_stages(self) -> None:
+        """Run the tracker's stages that do not train (backbone, fusion for ``"head"``) under
+        ``no_grad``: they precede every trained stage, so no gradient is lost, the update's
+        forward skips their autograd graph (P2B's fusion then takes its fast eval path, the
+        one the rollout takes: identical log-probabilities in rollout and update)."""
+        for _, child in self.tracker.named_children():
+            if not any(p.requires_grad for p in child.parameters()):
+                child.forward = torch.no_grad()(child.forward)
 
     @property
     def trainable_tracker_parameters(self) -> list[nn.Parameter]:
