@@ -81,6 +81,9 @@ def test_out_dir_refusals_name_the_problem(tmp_path, data):
         run(tiny_cfg(), tmp_path / "empty", data, resume=True)
     with pytest.raises(ft.FinetuneError, match="algo must be one of \\['ppo', 'residual'\\]"):
         run(tiny_cfg(algo="sac"), tmp_path / "x", data)
+    if not torch.cuda.is_available():
+        with pytest.raises(ft.FinetuneError, match="device 'cuda': CUDA is not available"):
+            run(tiny_cfg(device="cuda"), tmp_path / "y", data)
     run(tiny_cfg(timesteps=8), out, data, overwrite=True)
     assert log_steps(out) == [8]
 
@@ -245,6 +248,14 @@ def test_cli_end_to_end_result_loads_and_evaluates(tmp_path, capsys):
     assert main(["eval", "--tracker", str(out / "tracker.safetensors"), "--preset", "tiny",
                  "--max-tracklets", "1", "--no-progress"]) == 0
     assert "tracker.safetensors" in capsys.readouterr().out
+    # --resume --out DIR alone takes DIR's config; a flag that changes it is refused by name
+    with pytest.raises(SystemExit) as exc:
+        main(["finetune", "--resume", "--out", str(out), "--gamma", "0.5", "--timesteps", "24"])
+    assert exc.value.code == 2
+    assert "(gamma: saved 0.9, given 0.5)" in capsys.readouterr().err
+    assert main(["finetune", "--resume", "--out", str(out), "--timesteps", "24", "--no-val",
+                 "--no-progress"]) == 0
+    assert log_steps(out) == [8, 16, 24]
 
 
 @pytest.mark.slow

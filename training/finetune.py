@@ -152,6 +152,10 @@ class FinetuneConfig:
         for name in ("gamma", "gae_lambda"):
             if not 0 <= getattr(self, name) <= 1:
                 errors.append(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if str(self.device).startswith("cuda") and not torch.cuda.is_available():
+            errors.append(f"device {self.device!r}: CUDA is not available here (use cpu)")
+        elif not str(self.device).startswith(("cpu", "cuda")):
+            errors.append(f"device must be cpu or cuda[:N], got {self.device!r}")
         if self.target_kl is not None and not self.target_kl > 0:
             errors.append(f"target_kl must be > 0 (or None), got {self.target_kl}")
         if errors:

@@ -83,7 +83,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="quick val check of base vs fine-tuned on this many tracklets (must be >= 1)")
     add("--no-val", action="store_true", help="skip the quick val check")
     add("--out", default="runs/finetune", help="run directory")
-    add("--resume", action="store_true", help="continue the run in --out")
+    add("--resume", action="store_true",
+        help="continue the run in --out with its saved config; flags given with other values "
+             "must match it, except --timesteps (extends), --device, --threads, --save-every, "
+             "--snapshot-every, --val-max-tracklets")
     add("--overwrite", action="store_true", help="replace a run already in --out")
     add("--no-progress", action="store_true", help="no progress bar")
 
@@ -101,9 +104,38 @@ def build_config(args: argparse.Namespace):
     values = {k: v for k, v in vars(args).items() if k in fields}
     if args.no_val:
         values["val_max_tracklets"] = 0
+    if args.resume:
+        values = {**_saved_config(args.out, fields), **_changed(values)}
     cfg = FinetuneConfig(**values)
     cfg.validate()
     return cfg
+
+
+def _saved_config(out: str, fields: set[str]) -> dict:
+    """The config of the run in ``out`` (``config.json``), {} when there is none (``finetune``
+    then refuses the resume, naming the missing state)."""
+    import json
+    from pathlib import Path
+
+    path = Path(out) / "config.json"
+    if not path.is_file():
+        return {}
+    try:
+        saved = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        from training.finetune import FinetuneError
+
+        raise FinetuneError(f"cannot read {path}: {exc}") from None
+    return {k: v for k, v in saved.items() if k in fields}
+
+
+def _changed(values: dict) -> dict:
+    """The flags given with a value other than their default: on ``--resume`` the others come
+    from the saved run, so ``--resume --out DIR`` alone continues DIR's run as configured."""
+    from training.finetune import FinetuneConfig
+
+    defaults = FinetuneConfig().to_dict()
+    return {k: v for k, v in values.items() if v != defaults.get(k)}
 
 
 def _fail(message: str) -> SystemExit:
