@@ -151,6 +151,21 @@ def test_scaled_adam_steps_each_group_with_its_scaled_rate():
     assert [g["lr"] for g in opt.param_groups] == [0.1, 0.1]  # SB3's rate is left as set
 
 
+def test_a2c_drives_the_same_policy_with_its_rmsprop(data):
+    from stable_baselines3 import A2C
+
+    base = trackers.load("p2b-kitti1-u")
+    model = A2C(TrackerPolicy, rescaled(data), n_steps=8, seed=0, device="cpu",
+                policy_kwargs={"tracker": base, "tracker_lr_scale": 1.0})
+    opt = model.policy.optimizer
+    assert isinstance(opt, torch.optim.RMSprop) and opt.param_groups[1]["lr_scale"] == 1.0
+    before = {k: v.clone() for k, v in model.policy.tracker.state_dict().items()}
+    model.learn(8)
+    after = model.policy.tracker.state_dict()
+    assert any(not torch.equal(before[k], after[k]) for k in before if k.startswith("head."))
+    assert all(torch.equal(before[k], after[k]) for k in before if not k.startswith("head."))
+
+
 def test_soft_mode_mean_is_the_score_weighted_proposal_mean(data):
     base = trackers.load("p2b-kitti1-u")
     policy = ppo(data, base, policy_kwargs={"action_mode": "soft", "temperature": 0.5}).policy

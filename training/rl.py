@@ -45,6 +45,7 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from typing import Any
 
@@ -58,7 +59,7 @@ from torch import nn
 
 from trackers.base import OBS_SHAPES, Tracker
 
-__all__ = ["ACTION_MODES", "CRITICS", "TRAIN_PARTS", "ScaledAdam", "TrackerPolicy",
+__all__ = ["ACTION_MODES", "CRITICS", "TRAIN_PARTS", "ScaledAdam", "TrackerPolicy", "lr_scaled",
            "resolve_tracker"]
 
 TRAIN_PARTS = ("head", "fusion+head", "all")
@@ -66,12 +67,10 @@ ACTION_MODES = ("best", "soft")
 CRITICS = ("fused", "separate")
 
 
-class ScaledAdam(torch.optim.Adam):
-    """Adam whose parameter groups may carry ``lr_scale``: a group steps with ``lr * lr_scale``.
-
-    SB3 writes one learning rate into every group before each update; the scale keeps the
-    tracker's rate a fixed fraction of it.
-    """
+class _LRScaled:
+    """Mixin for a torch optimizer: a parameter group may carry ``lr_scale`` and then steps with
+    ``lr * lr_scale``. SB3 writes one learning rate into every group before each update; the
+    scale keeps the tracker's rate a fixed fraction of it."""
 
     @torch.no_grad()
     def step(self, closure: Any = None) -> Any:
@@ -83,6 +82,18 @@ class ScaledAdam(torch.optim.Adam):
         finally:
             for group, lr in zip(self.param_groups, saved, strict=True):
                 group["lr"] = lr
+
+
+class ScaledAdam(_LRScaled, torch.optim.Adam):
+    """Adam with per-group ``lr_scale`` (the default optimizer of :class:`TrackerPolicy`)."""
+
+
+@functools.cache
+def lr_scaled(optimizer_class: type[torch.optim.Optimizer]) -> type[torch.optim.Optimizer]:
+    """``optimizer_class`` with per-group ``lr_scale`` (A2C asks for RMSprop, for instance)."""
+    if issubclass(optimizer_class, _LRScaled):
+        return optimizer_class
+    return type(f"LRScaled{optimizer_class.__name__}", (_LRScaled, optimizer_class), {})
 
 
 class _NoFeatures(BaseFeaturesExtractor):
@@ -149,6 +160,7 @@ class TrackerPolicy(ActorCriticPolicy):
         critic_width: int = 64,
         tracker_lr_scale: float = 0.03,
         max_action: Any = None,
+        optimizer_class: type[torch.optim.Optimizer] = ScaledAdam,
         optimizer_kwargs: dict[str, Any] | None = None,
         use_sde: bool = False,
     ) -> None:
@@ -168,7 +180,7 @@ class TrackerPolicy(ActorCriticPolicy):
         super().__init__(
             observation_space, action_space, lr_schedule, net_arch=[], ortho_init=False,
             log_std_init=log_std_init, features_extractor_class=_NoFeatures,
-            optimizer_class=ScaledAdam,
+            optimizer_class=lr_scaled(optimizer_class),
             optimizer_kwargs={"eps": 1e-5} if optimizer_kwargs is None else optimizer_kwargs,
         )
         # SB3's _build (called above) built nothing; the tracker, value head and optimizer now
