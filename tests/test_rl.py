@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -78,6 +80,9 @@ def test_building_the_policy_changes_no_weight_and_copies_the_tracker(data):
     # SB3 flips the policy to training mode for updates; the tracker must stay in eval mode
     policy.set_training_mode(True)
     assert policy.training and not any(m.training for m in policy.tracker.modules())
+    # the frozen stages' no_grad forward follows a copy (it must not call the original)
+    clone = copy.deepcopy(policy.tracker)
+    assert clone.backbone.forward.__self__ is clone.backbone
     assert torch.allclose(policy.log_std, torch.full((4,), -2.0))
 
 

@@ -47,6 +47,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
+import types
 from typing import Any
 
 import numpy as np
@@ -307,7 +308,8 @@ class TrackerPolicy(ActorCriticPolicy):
         one the rollout takes: identical log-probabilities in rollout and update)."""
         for _, child in self.tracker.named_children():
             if not any(p.requires_grad for p in child.parameters()):
-                child.forward = torch.no_grad()(child.forward)
+                # a bound method (not a closure): a deepcopy of the tracker rebinds it
+                child.forward = types.MethodType(_no_grad_forward, child)
 
     @property
     def trainable_tracker_parameters(self) -> list[nn.Parameter]:
@@ -324,6 +326,11 @@ class TrackerPolicy(ActorCriticPolicy):
     @property
     def actor_frozen(self) -> bool:
         return self._actor_frozen
+
+
+def _no_grad_forward(module: nn.Module, *args: Any, **kwargs: Any) -> Any:
+    with torch.no_grad():
+        return type(module).forward(module, *args, **kwargs)
 
 
 def _check_choice(name: str, value: Any, valid: tuple[str, ...]) -> None:
