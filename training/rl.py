@@ -38,8 +38,14 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
   learning rate times ``tracker_lr_scale`` (default 0.03: 1e-5 under PPO's 3e-4), the value head
   and log-std the full rate, through per-group ``lr_scale`` in :class:`ScaledAdam` (SB3 sets one
   learning rate for every group; the scale survives it).
+* Stages that do not train (the backbone, and the fusion for ``"head"``) run under
+  ``no_grad``: they precede the trained ones (``train_parts`` is always a suffix of backbone ->
+  fusion -> head), so no gradient is lost, and the update skips their autograd graph.
 * :meth:`TrackerPolicy.freeze_actor` stops the actor's gradients (tracker and log-std) for a
   critic warm-up.
+* Any SB3 actor-critic algorithm can drive it (PPO, A2C: ``optimizer_class`` is wrapped by
+  :func:`lr_scaled`). Save the result with ``trackers.save(model.policy.tracker, path)`` or
+  through ``training.finetune`` (safetensors): SB3's zips load by unpickling.
 """
 
 from __future__ import annotations
