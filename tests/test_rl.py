@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -212,3 +213,18 @@ def test_nan_weights_raise_instead_of_acting(data):
     obs = {k: torch.as_tensor(v) for k, v in stack(observations(base, data)).items()}
     with pytest.raises(FloatingPointError, match="NaN"), torch.no_grad():
         policy(obs)
+
+
+def test_the_docs_example_runs(tmp_path, monkeypatch):
+    """docs/rl.md's SB3 example, on the tiny world with fewer steps."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "rl.md").read_text()
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    assert len(code.strip().splitlines()) <= 16  # the issue's "at most 15 lines" (+ a blank)
+    for old, new in (('preset="small"', 'preset="tiny"'), ("n_steps=128", "n_steps=8"),
+                     ("batch_size=64", "batch_size=8"), ("learn(2048)", "learn(8)")):
+        assert old in code
+        code = code.replace(old, new)
+    monkeypatch.chdir(tmp_path)
+    exec(compile(code, "docs/rl.md", "exec"), {})
+    tuned = trackers.load(tmp_path / "p2b-rl.safetensors")
+    assert tuned.name == "p2b"
