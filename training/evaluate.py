@@ -54,6 +54,8 @@ class UntrainedTrackerError(ValueError):
 def load_tracker(name_or_path: str, *, untrained: bool = False, seed: int = 0) -> Any:
     """A tracker by name, tracker file, shipped checkpoint name or training checkpoint.
 
+    * A ``pointtrack finetune --algo residual`` result (``residual.safetensors`` or its run
+      directory) loads as a :class:`training.finetune.ResidualTracker`.
     * A training checkpoint (``RUN/best.pt``, ``RUN/last.pt``) gives the weights its run
       validated (:func:`training.checkpoint.tracker_from_checkpoint`).
     * Anything else goes through ``trackers.load``.
@@ -68,7 +70,10 @@ def load_tracker(name_or_path: str, *, untrained: bool = False, seed: int = 0) -
     import trackers
     from trackers.registry import find_checkpoint
     from training.checkpoint import is_training_checkpoint, tracker_from_checkpoint
+    from training.finetune import ResidualTracker
 
+    if ResidualTracker.is_residual_file(name_or_path):  # a `pointtrack finetune --algo residual`
+        return ResidualTracker.load(name_or_path)
     if is_training_checkpoint(name_or_path):
         return tracker_from_checkpoint(name_or_path)
     if find_checkpoint(name_or_path) is not None:

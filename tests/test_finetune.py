@@ -1,0 +1,290 @@
+"""training.finetune / `pointtrack finetune`: the PPO run, its run directory, resume, NaN stops,
+the residual variant without unpickling (issue 22 items 2, 5; issue 23 rows 1, 17)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import trackers
+from envs.tracking_env import TrackingEnv, make_toy_dataset
+from training import finetune as ft
+from training.cli import main
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def data():
+    return make_toy_dataset(num_frames=8)
+
+
+def tiny_cfg(**kwargs) -> ft.FinetuneConfig:
+    base = {"tracker": "p2b-kitti1-u", "timesteps": 32, "num_envs": 2, "n_steps": 4,
+            "batch_size": 8, "n_epochs": 1, "clip_length": 4, "warmup_rollouts": 1}
+    return ft.FinetuneConfig(**{**base, **kwargs})
+
+
+def run(cfg, out, data, **kwargs):
+    return ft.finetune(cfg, out, make_env=lambda: TrackingEnv(data, sampling="random"),
+                       progress=False, log=lambda *_: None, **kwargs)
+
+
+def log_steps(out: Path) -> list[int]:
+    return [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()]
+
+
+def test_ppo_run_writes_an_ordinary_tracker_checkpoint(tmp_path, data):
+    out = tmp_path / "run"
+    result = run(tiny_cfg(snapshot_every=2), out, data)
+    assert result.timesteps == 32 and result.updates == 4
+    tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
+    changed = [k for k, v in tuned.state_dict().items() if not torch.equal(v, base.state_dict()[k])]
+    assert changed and all(k.startswith("head.") for k in changed)  # train_parts="head"
+    assert log_steps(out) == [8, 16, 24, 32]
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert records[0]["actor_frozen"] and not records[1]["actor_frozen"]
+    assert records[0]["approx_kl"] == 0.0  # warm-up: the actor did not move
+    assert all(0.0 <= r["iou"] <= 1.0 and r["steps_per_s"] > 0 for r in records)
+    assert sorted(p.name for p in (out / "snapshots").iterdir()) == [
+        "tracker-00000016.safetensors", "tracker-00000032.safetensors"]
+    torch.testing.assert_close(trackers.load(out / "snapshots/tracker-00000032.safetensors")
+                               .state_dict(), tuned.state_dict())
+    _, _, _, meta = ft.load_state(out / "state.safetensors")
+    assert meta["finished"] and meta["timesteps"] == 32
+
+
+def test_out_dir_refusals_name_the_problem(tmp_path, data):
+    out = tmp_path / "run"
+    run(tiny_cfg(timesteps=8), out, data)
+    with pytest.raises(ft.FinetuneError, match="holds a finished run.*--resume.*--overwrite"):
+        run(tiny_cfg(timesteps=8), out, data)
+    with pytest.raises(ft.FinetuneError, match=r"another tracker or config \(gamma: saved 0.9, "
+                                               r"given 0.5; tracker: saved 'p2b-kitti1-u', "
+                                               r"given 'bat-kitti1-u'"):
+        run(tiny_cfg(timesteps=16, gamma=0.5, tracker="bat-kitti1-u"), out, data, resume=True)
+    with pytest.raises(ft.FinetuneError, match="nothing to resume"):
+        run(tiny_cfg(), tmp_path / "empty", data, resume=True)
+    with pytest.raises(ft.FinetuneError, match="algo must be one of \\['ppo', 'residual'\\]"):
+        run(tiny_cfg(algo="sac"), tmp_path / "x", data)
+    if not torch.cuda.is_available():
+        with pytest.raises(ft.FinetuneError, match="device 'cuda': CUDA is not available"):
+            run(tiny_cfg(device="cuda"), tmp_path / "y", data)
+    run(tiny_cfg(timesteps=8), out, data, overwrite=True)
+    assert log_steps(out) == [8]
+
+
+def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch):
+    out = tmp_path / "run"
+    original = ft._PPORun.after_update
+
+    def stop_after_two(self):
+        original(self)
+        if self.updates == 2:
+            raise KeyboardInterrupt  # a kill right after the second checkpoint
+    monkeypatch.setattr(ft._PPORun, "after_update", stop_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        run(tiny_cfg(), out, data)
+    monkeypatch.setattr(ft._PPORun, "after_update", original)
+    policy_sd, optim_sd, _, meta = ft.load_state(out / "state.safetensors")
+    assert meta["timesteps"] == 16 and not meta["finished"]
+    assert not (out / "tracker.safetensors").exists()
+    # the state restores into a fresh policy exactly (optimizer moments included)
+    with pytest.raises(ft.FinetuneError, match="holds an unfinished run"):
+        run(tiny_cfg(), out, data)
+    result = run(tiny_cfg(), out, data, resume=True)
+    assert result.timesteps == 32 and result.updates == 4
+    assert log_steps(out) == [8, 16, 24, 32]
+    assert optim_sd["state"] and all(torch.isfinite(t).all() for e in optim_sd["state"].values()
+                                     for t in e.values())
+    assert set(policy_sd) == set(ft.load_state(out / "state.safetensors")[0])
+    trackers.load(out / "tracker.safetensors")
+
+
+def test_state_round_trips_policy_and_optimizer(tmp_path, data):
+    out = tmp_path / "run"
+    run(tiny_cfg(timesteps=16), out, data)
+    cfg = tiny_cfg(timesteps=16)
+    r = ft._PPORun(cfg, out, lambda: TrackingEnv(data, sampling="random"),
+                   ft._read_meta(out / "state.safetensors"), False, print)
+    policy_sd, optim_sd, _, _ = ft.load_state(out / "state.safetensors")
+    for k, v in r.policy.state_dict().items():
+        assert torch.equal(v, policy_sd[k]), k
+    restored = r.policy.optimizer.state_dict()
+    assert [g["lr_scale"] for g in restored["param_groups"]] == [1.0, cfg.tracker_lr / cfg.lr]
+    for idx, entry in optim_sd["state"].items():
+        for key, value in entry.items():
+            assert torch.equal(torch.as_tensor(restored["state"][idx][key]), value)
+    r.env.close()
+
+
+class NanAfter(gym.Wrapper):
+    """Rewards become NaN after ``k`` steps (a numerical fault inside a rollout)."""
+
+    def __init__(self, env, k):
+        super().__init__(env)
+        self.k, self.n = k, 0
+
+    def step(self, action):
+        obs, reward, term, trunc, info = self.env.step(action)
+        self.n += 1
+        return obs, (float("nan") if self.n > self.k else reward), term, trunc, info
+
+
+def test_nan_in_a_rollout_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path,
+                                                                                       data):
+    out = tmp_path / "run"
+    with pytest.raises(ft.NonFiniteError, match=r"non-finite rewards of the rollout at step 24 "
+                                                r"\(update 2\).*last good checkpoint \(step 16\)"):
+        ft.finetune(tiny_cfg(), out, progress=False,
+                    make_env=lambda: NanAfter(TrackingEnv(data, sampling="random"), 10))
+    _, _, _, meta = ft.load_state(out / "state.safetensors")
+    assert meta["timesteps"] == 16 and not meta["finished"]
+    assert not (out / "tracker.safetensors").exists()
+
+
+def test_residual_variant_saves_safetensors_and_loads_in_eval(tmp_path, data):
+    from training.evaluate import evaluate, load_tracker
+
+    out = tmp_path / "res"
+    run(tiny_cfg(algo="residual", timesteps=16, n_steps=8), out, data)
+    assert not (out / "ppo.zip").exists()
+    tuned = ft.ResidualTracker.load(out)
+    again = load_tracker(str(out / "residual.safetensors"))  # what `pointtrack eval` calls
+    assert isinstance(again, ft.ResidualTracker)
+    obs, _ = TrackingEnv(data).reset(seed=0)
+    np.testing.assert_allclose(again.act(obs), tuned.act(obs), atol=1e-6)
+    batch = {k: np.stack([v, v]) for k, v in obs.items()}
+    np.testing.assert_allclose(tuned.act(batch), np.stack([tuned.act(obs)] * 2), atol=1e-5)
+    assert 0.0 <= evaluate(again, TrackingEnv(data))["mean"]["success"] <= 100.0
+
+
+class _Payload:
+    """Unpickling this creates ``path`` (stands for arbitrary code)."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def _crafted_sb3_zip(path: Path, marker: Path) -> None:
+    blob = base64.b64encode(pickle.dumps(_Payload(marker))).decode()
+    data = {"policy_class": {":type:": "<class 'abc.ABCMeta'>", ":serialized:": blob}}
+    with zipfile.ZipFile(path, "w") as z:
+        z.writestr("data", json.dumps(data))
+        z.writestr("_stable_baselines3_version", "2.0.0")
+
+
+def test_a_crafted_ppo_zip_is_never_unpickled(tmp_path):
+    run_dir, marker = tmp_path / "ft", tmp_path / "pwned"
+    run_dir.mkdir()
+    _crafted_sb3_zip(run_dir / "ppo.zip", marker)
+    (run_dir / "finetune.json").write_text(json.dumps({"tracker": "p2b-kitti1-u"}))
+    with pytest.raises(ValueError, match="ppo.zip.*refused.*unpickles"):
+        ft.ResidualTracker.load(run_dir)
+    with pytest.raises(ValueError, match="SB3 zips are refused"):
+        ft.ResidualTracker.load(run_dir / "ppo.zip")
+    from training.evaluate import load_tracker
+
+    with pytest.raises((ValueError, FileNotFoundError)):
+        load_tracker(str(run_dir / "ppo.zip"))
+    assert not marker.exists()
+    # the payload is live: SB3's own loader runs it (why nothing of ours calls PPO.load)
+    from stable_baselines3 import PPO
+
+    with pytest.raises(Exception):  # noqa: B017 - whatever fails after the payload ran
+        PPO.load(run_dir / "ppo.zip")
+    assert marker.exists()
+
+
+def test_cli_bad_flags_are_one_line_errors(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["finetune", "--val-max-tracklets", "0", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err == ("pointtrack finetune: --val-max-tracklets must be >= 1, got 0 (use --no-val "
+                   "to skip the val check)")
+    with pytest.raises(SystemExit) as exc:
+        main(["finetune", "--algo", "sac", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--algo: invalid choice: 'sac'" in err and "ppo" in err and "residual" in err
+    with pytest.raises(SystemExit) as exc:
+        main(["finetune", "--tracker", "previous_box", "--out", str(tmp_path / "x")])
+    assert exc.value.code == 2
+    assert "no parameters to train" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+TINY_RUN = ["finetune", "--tracker", "p2b-kitti1-u", "--preset", "tiny", "--num-envs", "2",
+            "--n-steps", "4", "--batch-size", "8", "--n-epochs", "1", "--clip-length", "4",
+            "--no-progress"]
+
+
+def test_cli_end_to_end_result_loads_and_evaluates(tmp_path, capsys):
+    out = tmp_path / "ft"
+    assert main([*TINY_RUN, "--timesteps", "16", "--val-max-tracklets", "1",
+                 "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "base: val success" in text and "finetuned: val success" in text
+    assert json.loads((out / "val.json").read_text())["tracklets"] == 1
+    trackers.load(out / "tracker.safetensors")
+    assert main(["eval", "--tracker", str(out / "tracker.safetensors"), "--preset", "tiny",
+                 "--max-tracklets", "1", "--no-progress"]) == 0
+    assert "tracker.safetensors" in capsys.readouterr().out
+    # --resume --out DIR alone takes DIR's config; a flag that changes it is refused by name
+    with pytest.raises(SystemExit) as exc:
+        main(["finetune", "--resume", "--out", str(out), "--gamma", "0.5", "--timesteps", "24"])
+    assert exc.value.code == 2
+    assert "(gamma: saved 0.9, given 0.5)" in capsys.readouterr().err
+    assert main(["finetune", "--resume", "--out", str(out), "--timesteps", "24", "--no-val",
+                 "--no-progress"]) == 0
+    assert log_steps(out) == [8, 16, 24]
+
+
+@pytest.mark.slow
+def test_sigkill_and_resume_through_the_cli(tmp_path):
+    from envs.synthetic import ensure_world
+
+    ensure_world(preset="tiny")  # in this run's cache, shared with the child through the env
+    out = tmp_path / "ft"
+    args = [sys.executable, "-m", "training.cli", *TINY_RUN, "--timesteps", "64", "--no-val",
+            "--out", str(out)]
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    child = subprocess.Popen(args, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    while time.monotonic() < deadline and child.poll() is None:
+        state = out / "state.safetensors"
+        if state.exists() and ft._read_meta(state)["timesteps"] >= 16:
+            break
+        time.sleep(0.2)
+    assert child.poll() is None, child.stderr.read().decode()
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    killed_at = ft._read_meta(out / "state.safetensors")["timesteps"]
+    assert killed_at < 64 and not (out / "tracker.safetensors").exists()
+    done = subprocess.run([*args, "--resume"], cwd=REPO, env=env, capture_output=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr.decode()
+    steps = log_steps(out)
+    assert steps == sorted(set(steps)) and steps[-1] == 64 and steps[0] == 8
+    assert ft._read_meta(out / "state.safetensors")["finished"]
+    trackers.load(out / "tracker.safetensors")
+    assert not list(out.glob(".*tmp*"))

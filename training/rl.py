@@ -1,0 +1,356 @@
+"""A pretrained tracker as a stable-baselines3 policy: :class:`TrackerPolicy`.
+
+The actor *is* the tracker. For an observation batch the tracker runs one forward (in eval
+mode) and the Gaussian policy's mean is the tracker's own action, rescaled to the
+``RescaleAction(env, -1, 1)`` units ``a / max_action``; a learned, state-independent log-std
+(initial value ``log_std_init``, default -2: a standard deviation of 0.14 normalised units, i.e.
+0.68 m on x and y with the env's default ``max_action``) gives the exploration; a value head
+reads the tracker's fused search features ``Z (B, M, D)`` pooled over the seeds (max and mean),
+or, with ``critic="separate"``, a small PointNet of its own on the search points. ::
+
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+    from training.rl import TrackerPolicy
+
+    env = gym.wrappers.RescaleAction(my_tracking_env, -1.0, 1.0)
+    model = PPO(TrackerPolicy, env, policy_kwargs={"tracker": "p2b-kitti1-u"})
+
+Why each choice (the traps of wrapping a tracker by hand, issue 22):
+
+* **No re-initialisation.** SB3's ``ortho_init`` overwrites every weight it reaches; the tracker
+  is never passed to it (the value head keeps PyTorch's default init), so building the policy
+  changes no tracker weight and, before any update, ``predict(obs, deterministic=True)`` equals
+  ``tracker.act(obs) / max_action``.
+* **Always eval mode.** In training mode the backbone samples points at random and BatchNorm
+  uses batch statistics, so the log-probability of the same action would change between the
+  rollout and the update (PPO's ratio would not start at 1). :meth:`TrackerPolicy.train` keeps
+  the tracker in eval mode whatever SB3's ``set_training_mode`` asks; an eval-mode forward is
+  still differentiable.
+* **Action mean** ``action_mode="best"`` (default): the best-scored proposal, exactly what
+  ``tracker.act`` executes, so the policy starts as the pretrained tracker and PPO's gradient
+  reaches the box regression of that proposal (votes, clustering, offsets, and through them the
+  fusion and backbone features); the scores get no gradient (an argmax is piecewise constant).
+  ``"soft"``: the softmax(scores / ``temperature``)-weighted mean of the proposals, which also
+  trains the scores but starts *away* from ``tracker.act`` (it averages proposals on different
+  parts of the scene), so the first updates must first undo that shift.
+* **Which parts train** (``train_parts``): ``"head"`` (the proposal head), ``"fusion+head"``,
+  ``"all"``; the value head and the log-std always train. The tracker's parameters get the
+  learning rate times ``tracker_lr_scale`` (default 0.03: 1e-5 under PPO's 3e-4), the value head
+  and log-std the full rate, through per-group ``lr_scale`` in :class:`ScaledAdam` (SB3 sets one
+  learning rate for every group; the scale survives it).
+* Stages that do not train (the backbone, and the fusion for ``"head"``) run under
+  ``no_grad``: they precede the trained ones (``train_parts`` is always a suffix of backbone ->
+  fusion -> head), so no gradient is lost, and the update skips their autograd graph.
+* :meth:`TrackerPolicy.freeze_actor` stops the actor's gradients (tracker and log-std) for a
+  critic warm-up.
+* Any SB3 actor-critic algorithm can drive it (PPO, A2C: ``optimizer_class`` is wrapped by
+  :func:`lr_scaled`). Save the result with ``trackers.save(model.policy.tracker, path)`` or
+  through ``training.finetune`` (safetensors): SB3's zips load by unpickling.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import math
+import types
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3.common.distributions import DiagGaussianDistribution
+from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from torch import nn
+
+from trackers.base import OBS_SHAPES, Tracker
+
+__all__ = ["ACTION_MODES", "CRITICS", "TRAIN_PARTS", "ScaledAdam", "TrackerPolicy", "lr_scaled",
+           "resolve_tracker"]
+
+TRAIN_PARTS = ("head", "fusion+head", "all")
+ACTION_MODES = ("best", "soft")
+CRITICS = ("fused", "separate")
+
+
+class _LRScaled:
+    """Mixin for a torch optimizer: a parameter group may carry ``lr_scale`` and then steps with
+    ``lr * lr_scale``. SB3 writes one learning rate into every group before each update; the
+    scale keeps the tracker's rate a fixed fraction of it."""
+
+    @torch.no_grad()
+    def step(self, closure: Any = None) -> Any:
+        saved = [group["lr"] for group in self.param_groups]
+        for group in self.param_groups:
+            group["lr"] = group["lr"] * float(group.get("lr_scale", 1.0))
+        try:
+            return super().step(closure)
+        finally:
+            for group, lr in zip(self.param_groups, saved, strict=True):
+                group["lr"] = lr
+
+
+class ScaledAdam(_LRScaled, torch.optim.Adam):
+    """Adam with per-group ``lr_scale`` (the default optimizer of :class:`TrackerPolicy`)."""
+
+
+@functools.cache
+def lr_scaled(optimizer_class: type[torch.optim.Optimizer]) -> type[torch.optim.Optimizer]:
+    """``optimizer_class`` with per-group ``lr_scale`` (A2C asks for RMSprop, for instance)."""
+    if issubclass(optimizer_class, _LRScaled):
+        return optimizer_class
+    return type(f"LRScaled{optimizer_class.__name__}", (_LRScaled, optimizer_class), {})
+
+
+class _NoFeatures(BaseFeaturesExtractor):
+    """SB3 builds a features extractor in ``__init__``; the tracker reads the observation."""
+
+    def __init__(self, observation_space: spaces.Space) -> None:
+        super().__init__(observation_space, features_dim=1)
+
+    def forward(self, observations: Any) -> torch.Tensor:  # pragma: no cover - never called
+        raise RuntimeError("TrackerPolicy reads observations through its tracker")
+
+
+class _SearchCritic(nn.Module):
+    """A small PointNet value network: per-point MLP on ``search (B, N, 3)``, max-pool, then an
+    MLP with ``size (B, 3)`` and ``motion (B, 4)`` -> ``(B,)``."""
+
+    def __init__(self, width: int = 64) -> None:
+        super().__init__()
+        self.point = nn.Sequential(nn.Linear(3, width), nn.ReLU(), nn.Linear(width, 2 * width))
+        self.out = nn.Sequential(nn.Linear(2 * width + 7, width), nn.Tanh(), nn.Linear(width, 1))
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        pooled = self.point(obs["search"]).amax(dim=1)
+        return self.out(torch.cat([pooled, obs["size"], obs["motion"]], dim=-1)).squeeze(-1)
+
+
+def resolve_tracker(tracker: Any) -> Tracker:
+    """A learned tracker from a shipped name, a checkpoint path or a :class:`Tracker`; a
+    ``TypeError`` for anything without weights (a baseline such as ``previous_box``)."""
+    if isinstance(tracker, str | bytes) or hasattr(tracker, "__fspath__"):
+        import trackers
+
+        tracker = trackers.load(tracker)
+    if not isinstance(tracker, Tracker):
+        name = getattr(tracker, "name", type(tracker).__name__)
+        raise TypeError(f"TrackerPolicy needs a learned tracker (P2B, BAT or GPT: a shipped "
+                        f"name such as 'p2b-kitti1-u', a checkpoint path or a Tracker); "
+                        f"{name!r} has no parameters to train")
+    return tracker
+
+
+class TrackerPolicy(ActorCriticPolicy):
+    """SB3 actor-critic policy whose actor is a pretrained tracker (see the module docstring).
+
+    Keywords (``policy_kwargs``): ``tracker`` (required), ``train_parts`` (``"head"``),
+    ``log_std_init`` (-2.0), ``action_mode`` (``"best"``), ``temperature`` (1.0, for
+    ``"soft"``), ``critic`` (``"fused"``), ``critic_width`` (64), ``tracker_lr_scale`` (0.03),
+    ``max_action`` (default: the tracker's ``max_action``, which must equal the env's: the policy
+    works in ``a / max_action`` units). The tracker is copied: the caller's object is unchanged.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        lr_schedule: Any,
+        *,
+        tracker: Any,
+        train_parts: str = "head",
+        log_std_init: float = -2.0,
+        action_mode: str = "best",
+        temperature: float = 1.0,
+        critic: str = "fused",
+        critic_width: int = 64,
+        tracker_lr_scale: float = 0.03,
+        max_action: Any = None,
+        optimizer_class: type[torch.optim.Optimizer] = ScaledAdam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        use_sde: bool = False,
+    ) -> None:
+        if use_sde:
+            raise ValueError("TrackerPolicy does not support gSDE (use_sde=True)")
+        _check_choice("train_parts", train_parts, TRAIN_PARTS)
+        _check_choice("action_mode", action_mode, ACTION_MODES)
+        _check_choice("critic", critic, CRITICS)
+        if not (temperature > 0 and math.isfinite(temperature)):
+            raise ValueError(f"temperature must be a positive number, got {temperature!r}")
+        if not (tracker_lr_scale >= 0 and math.isfinite(tracker_lr_scale)):
+            raise ValueError(f"tracker_lr_scale must be >= 0, got {tracker_lr_scale!r}")
+        if not math.isfinite(log_std_init):
+            raise ValueError(f"log_std_init must be finite, got {log_std_init!r}")
+        _check_spaces(observation_space, action_space)
+        model = copy.deepcopy(resolve_tracker(tracker)).eval()
+        super().__init__(
+            observation_space, action_space, lr_schedule, net_arch=[], ortho_init=False,
+            log_std_init=log_std_init, features_extractor_class=_NoFeatures,
+            optimizer_class=lr_scaled(optimizer_class),
+            optimizer_kwargs={"eps": 1e-5} if optimizer_kwargs is None else optimizer_kwargs,
+        )
+        # SB3's _build (called above) built nothing; the tracker, value head and optimizer now
+        self.tracker = model
+        self.train_parts = train_parts
+        self.action_mode = action_mode
+        self.temperature = float(temperature)
+        self.critic_kind = critic
+        self.tracker_lr_scale = float(tracker_lr_scale)
+        a_max = model.max_action if max_action is None else max_action
+        a_max = np.asarray(a_max, dtype=np.float32)
+        if a_max.shape != (4,) or not np.all(a_max > 0):
+            raise ValueError(f"max_action must be 4 positive numbers, got {max_action!r}")
+        self.register_buffer("max_action", torch.as_tensor(a_max))
+        self.log_std = nn.Parameter(torch.full((4,), float(log_std_init)))
+        if critic == "fused":
+            d = int(model.fused_channels)
+            self.value_head: nn.Module = nn.Sequential(
+                nn.Linear(2 * d, critic_width), nn.Tanh(), nn.Linear(critic_width, 1))
+        else:
+            self.value_head = _SearchCritic(critic_width)
+        self._trainable = self._select_trainable()
+        for p in self.tracker.parameters():
+            p.requires_grad_(False)
+        for p in self._trainable:
+            p.requires_grad_(True)
+        self._no_grad_frozen_stages()
+        self._actor_frozen = False
+        own = [*self.value_head.parameters(), self.log_std]
+        self.optimizer = self.optimizer_class(
+            [{"params": own, "lr_scale": 1.0, "name": "value+log_std"},
+             {"params": self._trainable, "lr_scale": self.tracker_lr_scale, "name": "tracker"}],
+            lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.tracker.eval()
+
+    # ------------------------------------------------------------------ SB3 hooks
+    def _build(self, lr_schedule: Any) -> None:
+        """Nothing here: ``__init__`` builds the modules once the tracker can be assigned
+        (SB3's own ``_build`` would add unused networks and orthogonally initialise them)."""
+        self.action_dist = DiagGaussianDistribution(int(np.prod(self.action_space.shape)))
+
+    def train(self, mode: bool = True) -> TrackerPolicy:
+        """Module mode for the value head; the tracker stays in eval mode (see module doc)."""
+        super().train(mode)
+        if hasattr(self, "tracker"):
+            self.tracker.eval()
+        return self
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        raise NotImplementedError("TrackerPolicy is not saved through SB3 (it would be pickled); "
+                                  "use training.finetune, which writes safetensors")
+
+    def forward(self, obs: Any, deterministic: bool = False
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        mean, values = self.mean_and_value(obs)
+        dist = self.action_dist.proba_distribution(mean, self.log_std)
+        actions = dist.get_actions(deterministic=deterministic)
+        return actions, values[:, None], dist.log_prob(actions)
+
+    def evaluate_actions(self, obs: Any, actions: torch.Tensor
+                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        mean, values = self.mean_and_value(obs)
+        dist = self.action_dist.proba_distribution(mean, self.log_std)
+        return values[:, None], dist.log_prob(actions), dist.entropy()
+
+    def get_distribution(self, obs: Any) -> DiagGaussianDistribution:
+        mean, _ = self.mean_and_value(obs, value=False)
+        return self.action_dist.proba_distribution(mean, self.log_std)
+
+    def predict_values(self, obs: Any) -> torch.Tensor:
+        return self.mean_and_value(obs)[1][:, None]
+
+    # ------------------------------------------------------------------ the actor and critic
+    def mean_and_value(self, obs: Any, value: bool = True
+                       ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Action mean ``(B, 4)`` in ``[-1, 1]`` units and value ``(B,)`` (None unless
+        ``value``) from one tracker forward. Raises ``FloatingPointError`` on a non-finite
+        mean or value (broken weights must stop a run, not be trained on)."""
+        batch = {k: obs[k].to(self.max_action.device, torch.float32) for k in OBS_SHAPES}
+        out = self.tracker(batch)
+        proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
+        if self.action_mode == "best":
+            best = scores.argmax(dim=1)
+            action = proposals[torch.arange(len(best), device=best.device), best]
+        else:
+            weights = torch.softmax(scores / self.temperature, dim=1)
+            action = (weights[..., None] * proposals).sum(dim=1)
+        # tracker.act's rules: no move for an empty template or search, clip to max_action
+        empty = ((batch["template"] == 0).flatten(1).all(1)
+                 | (batch["search"] == 0).flatten(1).all(1))
+        action = torch.where(empty[:, None], torch.zeros_like(action), action)
+        a_max = self.max_action.to(action.dtype)
+        mean = torch.maximum(torch.minimum(action, a_max), -a_max) / a_max
+        if not torch.isfinite(mean).all():
+            raise FloatingPointError("TrackerPolicy: the tracker's action is NaN or inf")
+        if not value:
+            return mean, None
+        if self.critic_kind == "fused":
+            z = out["Z"].detach()  # the critic's loss must not move the tracker's features
+            v = self.value_head(torch.cat([z.amax(dim=1), z.mean(dim=1)], dim=-1)).squeeze(-1)
+        else:
+            v = self.value_head(batch)
+        if not torch.isfinite(v).all():
+            raise FloatingPointError("TrackerPolicy: the value head's output is NaN or inf")
+        return mean, v
+
+    # ------------------------------------------------------------------ parameter control
+    def _select_trainable(self) -> list[nn.Parameter]:
+        parts = {"head": ("head",), "fusion+head": ("fusion", "head"),
+                 "all": tuple(name for name, _ in self.tracker.named_children())}
+        params: list[nn.Parameter] = []
+        for name in parts[self.train_parts]:
+            module = getattr(self.tracker, name, None)
+            if module is None:
+                raise ValueError(f"train_parts={self.train_parts!r}: tracker "
+                                 f"{self.tracker.name!r} has no {name!r} module")
+            params.extend(module.parameters())
+        return params
+
+    def _no_grad_frozen_stages(self) -> None:
+        """Run the tracker's stages that do not train (backbone, fusion for ``"head"``) under
+        ``no_grad``: they precede every trained stage, so no gradient is lost, the update's
+        forward skips their autograd graph (P2B's fusion then takes its fast eval path, the
+        one the rollout takes: identical log-probabilities in rollout and update)."""
+        for _, child in self.tracker.named_children():
+            if not any(p.requires_grad for p in child.parameters()):
+                # a bound method (not a closure): a deepcopy of the tracker rebinds it
+                child.forward = types.MethodType(_no_grad_forward, child)
+
+    @property
+    def trainable_tracker_parameters(self) -> list[nn.Parameter]:
+        """The tracker parameters ``train_parts`` selects (frozen ones never change)."""
+        return list(self._trainable)
+
+    def freeze_actor(self, frozen: bool = True) -> None:
+        """Stop (or restart) gradients into the actor (trainable tracker parts and log-std):
+        a critic warm-up trains the value head alone."""
+        for p in [*self._trainable, self.log_std]:
+            p.requires_grad_(not frozen)
+        self._actor_frozen = frozen
+
+    @property
+    def actor_frozen(self) -> bool:
+        return self._actor_frozen
+
+
+def _no_grad_forward(module: nn.Module, *args: Any, **kwargs: Any) -> Any:
+    with torch.no_grad():
+        return type(module).forward(module, *args, **kwargs)
+
+
+def _check_choice(name: str, value: Any, valid: tuple[str, ...]) -> None:
+    if value not in valid:
+        raise ValueError(f"{name} must be one of {list(valid)}, got {value!r}")
+
+
+def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+    if not isinstance(observation_space, spaces.Dict) or any(
+            k not in observation_space.spaces or observation_space[k].shape != s
+            for k, s in OBS_SHAPES.items()):
+        raise ValueError(f"TrackerPolicy needs the tracking env's Dict observation space with "
+                         f"{ {k: s for k, s in OBS_SHAPES.items()} }, got {observation_space}")
+    if (not isinstance(action_space, spaces.Box) or action_space.shape != (4,)
+            or not np.allclose(action_space.low, -1.0) or not np.allclose(action_space.high, 1.0)):
+        raise ValueError(f"TrackerPolicy needs a Box(-1, 1, (4,)) action space: wrap the env in "
+                         f"gymnasium.wrappers.RescaleAction(env, -1.0, 1.0); got {action_space}")
