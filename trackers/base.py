@@ -279,6 +279,7 @@ class MatchingTracker(Tracker):
 
     Subclasses implement :meth:`build_fusion` and :meth:`fuse` (and optionally
     :meth:`extra_losses`); the backbone and head come from ``config.backbone`` / ``config.head``.
+    ``fused_channels`` is the width ``D`` of the fused search features ``Z (B, M_S, D)``.
     """
 
     config_class: ClassVar[type] = MatchingConfig
@@ -286,8 +287,8 @@ class MatchingTracker(Tracker):
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__(config, **overrides)
         self.backbone = Backbone(self.config.backbone)
-        self.fusion, fused_channels = self.build_fusion(self.backbone.out_channels)
-        self.head = VotingHead(fused_channels, self.config.head)
+        self.fusion, self.fused_channels = self.build_fusion(self.backbone.out_channels)
+        self.head = VotingHead(self.fused_channels, self.config.head)
 
     def build_fusion(self, in_channels: int
                      ) -> tuple[nn.Module, int]:  # pragma: no cover - abstract

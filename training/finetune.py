@@ -343,14 +343,16 @@ def train_env_factory(cfg: FinetuneConfig) -> Callable[[], gym.Env]:
 
     setting = _setting(cfg)
     data = KittiTracking(_root(cfg), "train", list(setting.observed))
+    # clips start anywhere in a tracklet (the env's start_frame / max_steps episode options)
     base = TrackingEnv(data, setting=setting, categories=setting.observed, sampling="random",
-                       reward=cfg.reward)
+                       reward=cfg.reward, start_frame="random",
+                       max_steps=cfg.clip_length if cfg.clip_length > 0 else None)
     return base.clone
 
 
 def _wrap(env: gym.Env, clip_length: int) -> gym.Env:
-    # issue 22's env options (reset(options={"start_frame", "max_steps"})) would let clips start
-    # anywhere in a tracklet; with today's env a TimeLimit clips from its first frame
+    # a TimeLimit for envs that do not clip themselves; on one that does (max_steps) it ends
+    # the episode at the same step
     if clip_length > 0:
         env = gym.wrappers.TimeLimit(env, max_episode_steps=clip_length)
     one = np.ones(4, dtype=np.float32)
