@@ -189,7 +189,8 @@ def test_every_train_flag_reaches_the_config():
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    not_config = {"help", "config", "set", "resume", "no_progress", "export"}
+    not_config = {"help", "config", "set", "resume", "no_progress", "export",
+                  "drct", "domain_randomize"}  # switches: tests/test_drct.py (mutually exclusive)
     # flag destination -> (value given on the command line, expected config key and value)
     given = {
         "tracker": ("gpt", "tracker", "gpt"), "setting": ("kitti-2", "setting", "kitti-2"),
@@ -206,6 +207,7 @@ def test_every_train_flag_reaches_the_config():
         "threads": ("2", "num_threads", 2), "device": ("cuda:1", "device", "cuda:1"),
         "val_max_tracklets": ("3", "val_max_tracklets", 3),
         "val_max_frames": ("11", "val_max_frames", 11),
+        "drct_variant": ("siamese", "drct_variant", "siamese"),
     }
     flags = {a.dest: a.option_strings[0] for a in parser._actions if a.dest not in not_config}
     missing = set(flags) - set(given)

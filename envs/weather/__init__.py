@@ -5,8 +5,9 @@ Every corruption has the signature
 ``corruption(points (N, 3) float32, intensity (N,) float32, rng: numpy.random.Generator,
 level: int 1..5) -> (points (N', 3) float32, intensity (N',) float32)``:
 vectorised, deterministic from ``rng``, lost returns removed (never left at the origin; the
-default fog rule, the released reference code's, loses none), an empty scan stays empty, intensities stay on the scan's own scale. The physical parameters of
-the levels live in :mod:`envs.weather.levels`.
+default fog rule, the released reference code's, loses none), an empty scan stays empty,
+intensities stay on the scan's own scale. The physical parameters of the levels live in
+:mod:`envs.weather.levels`.
 
 - :func:`corrupt` — dispatch by kind name (``"fog"``, ``"rain"``, ``"snow"``).
 - :class:`WeatherTransform` — the env's ``scan_transform`` hook: ``(N, 4)`` scans, seeded per

@@ -171,6 +171,8 @@ def _run_weather(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             name=name,
             tracklets=subset,
+            num_envs=args.num_envs if args.num_envs > 1 else None,
+            fog_mode=args.fog_mode,
         )
     base.close()
     return 0
