@@ -114,7 +114,7 @@ class TrainConfig:
     # randomised samples). Defaults: the paper's where it gives them, else ours (documented).
     drct: bool = False
     drct_variant: str = "asymmetric"  # asymmetric (extra FFN on the auxiliary branch) | siamese
-    drct_contrast_weight: float = 0.1
+    drct_contrast_weight: float = 0.01
     drct_aux_weight: float = 1.0
     drct_radius_m: float = 0.7
     drct_neighbours: int = 8

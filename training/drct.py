@@ -74,7 +74,7 @@ class DRCTConfig:
     """DRCT hyper-parameters (see the module docstring; ``docs/weather.md`` for the choices)."""
 
     variant: str = "asymmetric"
-    contrast_weight: float = 0.1
+    contrast_weight: float = 0.01
     aux_weight: float = 1.0
     radius_m: float = 0.7
     neighbours: int = 8
