@@ -93,3 +93,24 @@ def test_bad_num_envs_and_fog_mode():
     with pytest.raises(ValueError, match="reference, lossy"):
         run_weather_benchmark(PreviousBox(), lambda: TrackingEnv(toy), "fog", (1,),
                               fog_mode="shifted")
+
+
+def test_cli_weather_with_num_envs(tmp_path, capsys):
+    synthetic = pytest.importorskip("envs.synthetic")
+    if not hasattr(synthetic, "ensure_world"):
+        pytest.skip("envs.synthetic.ensure_world not available yet")
+    import json
+
+    from training.cli import main
+
+    rc = main(["eval", "--tracker", "previous_box", "--preset", "tiny", "--weather", "fog,snow",
+               "--weather-levels", "5", "--num-envs", "3", "--max-tracklets", "4",
+               "--fog-mode", "lossy", "--no-progress", "--out", str(tmp_path)])
+    assert rc == 0
+    assert "Fog" in capsys.readouterr().out
+    res = json.loads((tmp_path / "weather_previous_box" / "weather.json").read_text())
+    assert res["num_envs"] == 3 and res["fog_mode"] == "lossy"
+    assert res["clean"]["tracklets"] == 4 and res["clean"]["env"]["num_envs"] == 3
+    # the analysis has every stepped frame once (the report also counts each first frame)
+    frames = res["clean"]["frames"] - res["clean"]["tracklets"]
+    assert res["analysis"]["snow"]["5"]["frames"] == res["analysis"]["fog"]["5"]["frames"] == frames

@@ -3,9 +3,12 @@ fog / rain / snow at levels 1..5, with the paper's robustness metrics and analys
 
 :func:`run_weather_benchmark` evaluates a tracker with :func:`training.evaluate.evaluate` on the
 clean env and on each ``(kind, level)`` (the env wrapped in :class:`envs.weather.WeatherWrapper`,
-same weather seed for every tracker), and returns a JSON-able result::
+same weather seed and fog rule for every tracker), on one env or, with ``num_envs``, on a vector
+env whose sub-envs each carry their own transform (batched ``act`` calls, as plain evaluation),
+and returns a JSON-able result::
 
-    {"tracker": name, "kinds": [...], "levels": [...], "weather_seed": int,
+    {"tracker": name, "kinds": [...], "levels": [...], "weather_seed": int, "fog_mode": str,
+     "num_envs": int,
      "clean": report, "weather": {kind: {level: report}},          # evaluate() reports
      "robustness": {kind: {group: {"clean": [S, P], "levels": [[S, P] x 5],
                                    "dr": [[S_j/S_c, P_j/P_c] x 5], "DR": [S, P],

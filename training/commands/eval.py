@@ -148,7 +148,8 @@ def run(args: argparse.Namespace) -> int:
 def _run_weather(args: argparse.Namespace) -> int:
     """``--weather KINDS``: the adverse-weather benchmark (``training.robustness``): each tracker
     clean and under every kind and level, printed as Tables III-IV of ``003_…``; with ``--out``,
-    JSON, table and plots per tracker under ``<out>/weather_<tracker>/``."""
+    JSON, table and plots per tracker under ``<out>/weather_<tracker>/``. ``--num-envs N > 1``
+    runs every condition on N sub-envs (batched ``act``); ``--fog-mode`` picks the fog rule."""
     from pathlib import Path
 
     from training.evaluate import load_tracker
