@@ -101,6 +101,29 @@ def test_branches_start_equal_and_the_tap_leaves_the_backbone_alone():
     assert set(model.state_dict()) == set(slim_p2b().state_dict())
 
 
+def test_tap_records_each_cloud_once_and_applies_the_ffn_once_in_training():
+    """In training the backbone encodes one cloud per (recursive) call; the tap must still see
+    two clouds and transform each once."""
+    model = slim_p2b()
+    drct = DRCT(model)
+    torch.nn.init.normal_(drct.ffn.fc2.weight, std=0.1)  # a non-identity FFN
+    batch, _ = a_batch(2)
+    model.train()
+    drct.aux.train()
+    model.generator.manual_seed(5)
+    with tap_backbone(model) as p, torch.no_grad():
+        model(batch)
+    drct.aux.generator.manual_seed(5)
+    with tap_backbone(drct.aux, drct.ffn) as a, torch.no_grad():
+        drct.aux(batch)
+    assert len(p) == len(a) == 2
+    for (px, pf), (ax, af) in zip(p, a, strict=True):
+        torch.testing.assert_close(px, ax)
+        with torch.no_grad():
+            torch.testing.assert_close(af, drct.ffn(pf))
+        assert not torch.allclose(af, pf)
+
+
 def test_siamese_variant_shares_parameters():
     model = slim_p2b()
     drct = DRCT(model, DRCTConfig(variant="siamese"))

@@ -230,9 +230,16 @@ def tap_backbone(
     backbone = _backbone_of(tracker)
     records: list[tuple[torch.Tensor, torch.Tensor]] = []
     original = backbone.forward_many
+    depth = [0]
 
     def forward_many(clouds, orders):
-        outs = original(clouds, orders)
+        depth[0] += 1
+        try:
+            outs = original(clouds, orders)
+        finally:
+            depth[0] -= 1
+        if depth[0]:  # the backbone calling itself (one cloud at a time in training): the
+            return outs  # outermost call records and transforms, once per cloud
         if transform is not None:
             outs = [(xyz, transform(feat), idx) for xyz, feat, idx in outs]
         records.extend((xyz, feat) for xyz, feat, _ in outs)
@@ -293,6 +300,7 @@ class DRCT(nn.Module):
             outputs = net(batch)
         losses = model.loss(outputs, targets)
         aux = model if self.aux is None else self.aux
+        aux.train(model.training)
         gen = getattr(aux, "generator", None)
         if self.aux is not None and isinstance(gen, torch.Generator):
             gen.manual_seed(int(rng.integers(2**62)))  # the copy's own sampling stream

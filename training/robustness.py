@@ -396,9 +396,10 @@ def format_weather_table(results: dict[str, Any] | Sequence[dict[str, Any]]) -> 
 
 
 def plot_success_vs_level(results: dict[str, Any] | Sequence[dict[str, Any]], path: str | Path,
-                          metric: str = "success") -> Path:
+                          metric: str = "success", groups: Sequence[str] | None = None) -> Path:
     """One panel per weather kind: Success (or Precision) against level (0 = clean), one line per
-    category and the mean, per tracker."""
+    category and the mean, per tracker; ``groups`` restricts the lines (e.g. ``["mean",
+    "unseen"]``; default: every category and the mean)."""
     plt = pyplot()
 
     if isinstance(results, dict):
@@ -409,11 +410,11 @@ def plot_success_vs_level(results: dict[str, Any] | Sequence[dict[str, Any]], pa
     for ax, kind in zip(axes[0], kinds, strict=True):
         for r in results:
             for g, e in r["robustness"][kind].items():
-                if g in ("observed", "unseen"):
+                if (g not in groups) if groups is not None else g in ("observed", "unseen"):
                     continue
                 xs = [0] + list(r["levels"])
                 ys = [e["clean"][k]] + [x[k] for x in e["levels"]]
-                style = "-o" if g == "mean" else "--."
+                style = "-o" if g in ("mean", "observed") else "--."
                 label = g if len(results) == 1 else f"{r['tracker']} {g}"
                 ax.plot(xs, ys, style, label=label, lw=2 if g == "mean" else 1)
         ax.set_title(kind.capitalize())
