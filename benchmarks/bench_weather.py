@@ -3,15 +3,15 @@ snow rates side by side on one scan; the weather benchmark's wall time.
 
     python benchmarks/bench_weather.py [--quick]
     python benchmarks/bench_weather.py --compare [--preset small]    # fog modes, snow rates
-    python benchmarks/bench_weather.py --benchmark p2b-kitti1-u --num-envs 1 8 16
+    python benchmarks/bench_weather.py --benchmark p2b-kitti1-u --num-envs 1 8 [--max-tracklets 8]
 
 ``--compare`` takes, of the first frames of the test tracklets at least 15 m away, the one with
-the most target points of a synthetic world and prints, per fog rule at every level, the target points left inside the
-ground-truth box, the points kept in the scan, and the ranges of the fog returns; then the same
-for snow at the benchmark's rates (the rain rates) and at 0.5-2.5 mm/h.
-``--benchmark`` times ``run_weather_benchmark`` of one tracker over clean + fog L5 on the
-preset's test split per ``--num-envs`` (wall and process CPU time) and extrapolates to the 16
-conditions.
+the most target points of a synthetic world and prints, per fog rule at every level, the target
+points left inside the ground-truth box, the points kept in the scan, and the ranges of the fog
+returns; then the same for snow at the benchmark's rates (the rain rates) and at 0.5-2.5 mm/h.
+``--benchmark`` times ``run_weather_benchmark`` of one tracker over clean + fog L5 (no analysis)
+on the preset's test split per ``--num-envs`` (wall and process CPU time; the process time
+stays meaningful when other jobs share the cores) and extrapolates to the 16 conditions.
 
 Prints, for a 120k-point scan: ms per corruption at every level (median of repeats, the per-alpha
 / per-rate lookup tables already built; their one-off build time is printed separately), the
@@ -160,8 +160,11 @@ def compare_rules(preset: str) -> None:
                   f"{len(out) / len(pts):6.1%}  snowflake returns {flakes:6,}")
 
 
-def bench_benchmark(tracker_name: str, preset: str, counts: list[int]) -> None:
-    """Wall and CPU seconds of clean + fog L5 per --num-envs, extrapolated to 16 conditions."""
+def bench_benchmark(tracker_name: str, preset: str, counts: list[int],
+                    max_tracklets: int | None = None) -> None:
+    """Wall and CPU seconds of clean + fog L5 per --num-envs (on the first ``max_tracklets``
+    test tracklets if given), extrapolated to the 16 conditions of the whole test split by the
+    frame count."""
     import torch
 
     from envs.tracking_env import make_synthetic_env
@@ -171,15 +174,22 @@ def bench_benchmark(tracker_name: str, preset: str, counts: list[int]) -> None:
     torch.set_num_threads(1)
     base = make_synthetic_env(preset=preset, split="test", setting="kitti-1")
     tracker = load_tracker(tracker_name)
-    print(f"{tracker_name}, {preset} test ({base.num_tracklets} tracklets), clean + fog L5:")
+    subset = None if max_tracklets is None else list(range(min(max_tracklets,
+                                                              base.num_tracklets)))
+    total = sum(base.tracklet_lengths)
+    print(f"{tracker_name}, {preset} test ({base.num_tracklets} tracklets, {total} frames), "
+          f"clean + fog L5 on {len(subset) if subset else base.num_tracklets} tracklets:")
     for n in counts:
         wall, cpu = time.perf_counter(), time.process_time()
         res = run_weather_benchmark(tracker, base.clone, ("fog",), (5,),
-                                    num_envs=n if n > 1 else None)
+                                    num_envs=n if n > 1 else None, tracklets=subset,
+                                    analysis=False)
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-        print(f"  --num-envs {n:>2}: {wall:6.1f} s wall, {cpu:6.1f} s CPU for 2 conditions "
-              f"({res['clean']['frames']} frames each) -> 16 conditions ~{8 * cpu / 60:.1f} min "
-              "CPU")
+        frames = res["clean"]["frames"]
+        per_frame = cpu / (2 * frames)
+        print(f"  --num-envs {n:>2}: {wall:6.1f} s wall, {cpu:6.1f} s CPU for 2 x {frames} "
+              f"frames = {1e3 * per_frame:.1f} ms CPU/frame -> 16 conditions x {total} frames "
+              f"~{16 * total * per_frame / 60:.1f} min CPU")
 
 
 def main() -> None:
@@ -190,12 +200,13 @@ def main() -> None:
     parser.add_argument("--benchmark", metavar="TRACKER", help="time the weather benchmark")
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 8, 16])
     parser.add_argument("--preset", default="small")
+    parser.add_argument("--max-tracklets", type=int, default=None)
     args = parser.parse_args()
     if args.compare:
         compare_rules(args.preset)
         return
     if args.benchmark:
-        bench_benchmark(args.benchmark, args.preset, args.num_envs)
+        bench_benchmark(args.benchmark, args.preset, args.num_envs, args.max_tracklets)
         return
     bench_corruptions(3 if args.quick else 10)
     bench_env(args.quick)
