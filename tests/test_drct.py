@@ -261,3 +261,24 @@ def test_cli_flags_set_the_config():
     assert cfg.drct_neighbours == 4
     assert not build_config(parser.parse_args([])).drct
     assert build_config(parser.parse_args(["--domain-randomize"])).domain_randomize
+
+
+def test_drct_with_sam_and_the_rd_control_train(tmp_path):
+    """--drct with --weighting sam (the SAM closure recomputes the DRCT objective on the same
+    randomised batch) and the -RD control both run and move the weights."""
+    from training.pretrain import load_weights, train
+
+    start = {k: v.clone() for k, v in slim_p2b().state_dict().items()}
+    for name, kw in (("sam", {"drct": True, "weighting": "sam"}),
+                     ("rd", {"domain_randomize": True})):
+        cfg = tiny_config(tmp_path / name, epochs=1, batch_size=2, iters_per_epoch=1,
+                          model_size="slim", **kw)
+        result = train(cfg, train_data=small_dataset(), val_fn=False,
+                       model_factory=lambda c: slim_p2b())
+        assert result.steps == 1
+        weights, _ = load_weights(tmp_path / name / "last.pt")
+        moved = [k for k in start if start[k].is_floating_point()
+                 and not torch.equal(start[k], weights[k])]
+        assert moved, name
+        log = (tmp_path / name / "log.jsonl").read_text()
+        assert "NaN" not in log
