@@ -1,6 +1,17 @@
-"""Speed of the weather corruptions and of the weather hook in the env.
+"""Speed of the weather corruptions and of the weather hook in the env; the fog rules and the
+snow rates side by side on one scan; the weather benchmark's wall time.
 
     python benchmarks/bench_weather.py [--quick]
+    python benchmarks/bench_weather.py --compare [--preset small]    # fog modes, snow rates
+    python benchmarks/bench_weather.py --benchmark p2b-kitti1-u --num-envs 1 8 [--max-tracklets 8]
+
+``--compare`` takes, of the first frames of the test tracklets at least 15 m away, the one with
+the most target points of a synthetic world and prints, per fog rule at every level, the target
+points left inside the ground-truth box, the points kept in the scan, and the ranges of the fog
+returns; then the same for snow at the benchmark's rates (the rain rates) and at 0.5-2.5 mm/h.
+``--benchmark`` times ``run_weather_benchmark`` of one tracker over clean + fog L5 (no analysis)
+on the preset's test split per ``--num-envs`` (wall and process CPU time; the process time
+stays meaningful when other jobs share the cores) and extrapolates to the 16 conditions.
 
 Prints, for a 120k-point scan: ms per corruption at every level (median of repeats, the per-alpha
 / per-rate lookup tables already built; their one-off build time is printed separately), the
@@ -94,10 +105,109 @@ def bench_env(quick: bool) -> None:
         print(f"  {label:<8} first pass {row[0]:6.2f} ms/step   cached {row[1]:6.3f} ms/step")
 
 
+def compare_rules(preset: str) -> None:
+    """Fog reference vs lossy and snow at the two rate sets, on one synthetic test scan."""
+    from envs.geometry import points_in_box
+    from envs.tracking_env import make_synthetic_env
+    from envs.weather.fog import fog_alpha
+    from envs.weather.levels import (
+        FOG_ALPHA_PER_M,
+        RAIN_RATE_MM_H,
+        SNOW_RATE_MM_H_HAHNER,
+    )
+    from envs.weather.precipitation import precipitation_rate
+
+    env = make_synthetic_env(preset=preset, split="test", setting="kitti-1")
+    # a target where fog matters: of the frames 0 of the test tracklets at least 15 m away, the
+    # one with the most points in its box (a near car keeps its points under any fog level)
+    best = None
+    for tr in env.tracklets:
+        box = np.asarray(tr.boxes[0], dtype=np.float64)
+        if float(np.linalg.norm(box[:2])) < 15.0:
+            continue
+        scan = np.asarray(tr.points_with_intensity(0), dtype=np.float32)
+        n_target = int(points_in_box(scan[:, :3], box).sum())
+        if best is None or n_target > best[0]:
+            best = (n_target, tr, scan, box)
+    n_target, tr, scan, box = best
+    dist = float(np.linalg.norm(box[:2]))
+    print(f"{preset} test tracklet {tr.tracklet_id} ({tr.category}) frame 0: {len(scan):,} points,"
+          f" {n_target} in the target box at {dist:.1f} m")
+    pts, inten = scan[:, :3], scan[:, 3]
+    r_in = np.linalg.norm(pts, axis=1)
+    for mode in ("reference", "lossy"):
+        print(f"  fog, {mode} rule:")
+        for level, alpha in enumerate(FOG_ALPHA_PER_M, start=1):
+            out, _, src = fog_alpha(pts, inten, np.random.default_rng(0), alpha,
+                                    return_source=True, mode=mode)
+            r_out = np.linalg.norm(out, axis=1)
+            fog = r_out < r_in[src] - 0.5
+            in_box = int(points_in_box(out, box).sum())
+            q = np.percentile(r_out[fog], [5, 50, 95]) if fog.any() else [np.nan] * 3
+            print(f"    L{level} alpha {alpha:<5g}: target {in_box:4d}/{n_target}  scan kept "
+                  f"{len(out) / len(pts):6.1%}  fog returns {int(fog.sum()):6,} at "
+                  f"{q[0]:.1f} / {q[1]:.1f} / {q[2]:.1f} m (5/50/95 %)")
+    for label, rates in (("benchmark (rain rates)", RAIN_RATE_MM_H),
+                         ("Hahner 0.5-2.5", SNOW_RATE_MM_H_HAHNER)):
+        print(f"  snow, {label}:")
+        for level, rate in enumerate(rates, start=1):
+            out, _, src = precipitation_rate(pts, inten, np.random.default_rng(0), "snow", rate,
+                                             return_source=True)
+            r_out = np.linalg.norm(out, axis=1)
+            flakes = int((r_out < r_in[src] - 0.5).sum())
+            in_box = int(points_in_box(out, box).sum())
+            print(f"    L{level} {rate:<6g} mm/h: target {in_box:4d}/{n_target}  scan kept "
+                  f"{len(out) / len(pts):6.1%}  snowflake returns {flakes:6,}")
+
+
+def bench_benchmark(tracker_name: str, preset: str, counts: list[int],
+                    max_tracklets: int | None = None) -> None:
+    """Wall and CPU seconds of clean + fog L5 per --num-envs (on the first ``max_tracklets``
+    test tracklets if given), extrapolated to the 16 conditions of the whole test split by the
+    frame count."""
+    import torch
+
+    from envs.tracking_env import make_synthetic_env
+    from training.evaluate import load_tracker
+    from training.robustness import run_weather_benchmark
+
+    torch.set_num_threads(1)
+    base = make_synthetic_env(preset=preset, split="test", setting="kitti-1")
+    tracker = load_tracker(tracker_name)
+    subset = None if max_tracklets is None else list(range(min(max_tracklets,
+                                                              base.num_tracklets)))
+    total = sum(base.tracklet_lengths)
+    print(f"{tracker_name}, {preset} test ({base.num_tracklets} tracklets, {total} frames), "
+          f"clean + fog L5 on {len(subset) if subset else base.num_tracklets} tracklets:")
+    for n in counts:
+        wall, cpu = time.perf_counter(), time.process_time()
+        res = run_weather_benchmark(tracker, base.clone, ("fog",), (5,),
+                                    num_envs=n if n > 1 else None, tracklets=subset,
+                                    analysis=False)
+        wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+        frames = res["clean"]["frames"]
+        per_frame = cpu / (2 * frames)
+        print(f"  --num-envs {n:>2}: {wall:6.1f} s wall, {cpu:6.1f} s CPU for 2 x {frames} "
+              f"frames = {1e3 * per_frame:.1f} ms CPU/frame -> 16 conditions x {total} frames "
+              f"~{16 * total * per_frame / 60:.1f} min CPU")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats and frames")
+    parser.add_argument("--compare", action="store_true",
+                        help="fog rules and snow rates side by side on one synthetic scan")
+    parser.add_argument("--benchmark", metavar="TRACKER", help="time the weather benchmark")
+    parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 8, 16])
+    parser.add_argument("--preset", default="small")
+    parser.add_argument("--max-tracklets", type=int, default=None)
     args = parser.parse_args()
+    if args.compare:
+        compare_rules(args.preset)
+        return
+    if args.benchmark:
+        bench_benchmark(args.benchmark, args.preset, args.num_envs, args.max_tracklets)
+        return
     bench_corruptions(3 if args.quick else 10)
     bench_env(args.quick)
 

@@ -190,7 +190,8 @@ def test_every_train_flag_reaches_the_config():
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    not_config = {"help", "config", "set", "resume", "no_progress", "export"}
+    not_config = {"help", "config", "set", "resume", "no_progress", "export",
+                  "drct", "domain_randomize"}  # switches: tests/test_drct.py (mutually exclusive)
     # flag destination -> (value given on the command line, expected config key and value)
     given = {
         "tracker": ("gpt", "tracker", "gpt"), "setting": ("kitti-2", "setting", "kitti-2"),
@@ -208,6 +209,7 @@ def test_every_train_flag_reaches_the_config():
         "val_max_tracklets": ("3", "val_max_tracklets", 3),
         "val_max_frames": ("11", "val_max_frames", 11),
         "nuscenes_version": ("v1.0-mini", "nuscenes_version", "v1.0-mini"),
+        "drct_variant": ("siamese", "drct_variant", "siamese"),
     }
     flags = {a.dest: a.option_strings[0] for a in parser._actions if a.dest not in not_config}
     missing = set(flags) - set(given)

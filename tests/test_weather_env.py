@@ -45,7 +45,7 @@ def test_transform_keyed_by_scene_and_frame():
     t2 = pickle.loads(pickle.dumps(t))
     assert t2 == t and t2._cache == {}
     np.testing.assert_array_equal(t2(s, "0004/1", 10), a)
-    assert t.info == {"kind": "snow", "level": 5, "parameter": 2.5,
+    assert t.info == {"kind": "snow", "level": 5, "parameter": 7.29,
                       "unit": "snowfall mm/h (w.e.)", "seed": 3}
     with pytest.raises(ValueError, match=r"\(N, 4\)"):
         t(s[:, :3], "0004/1", 12)

@@ -62,6 +62,7 @@ edge, no scaling), used for GPT when ``gpt_search_region`` is on."""
 # Values of keys a training checkpoint written before the key existed ran with (not the
 # current default): runs before recipe v2 are v1 runs.
 LEGACY_DEFAULTS: dict[str, Any] = {"recipe": "v1"}
+DRCT_VARIANTS = ("asymmetric", "siamese")  # training.drct.DRCT_VARIANTS (no torch import here)
 
 
 class ConfigError(ValueError):
@@ -135,6 +136,23 @@ class TrainConfig:
     decor_penalty: float = 0.1
     decor_memory: bool = True
     decor_memory_ratio: float = 0.9
+    # DRCT (training.drct; docs/weather.md): dual-branch training with domain randomisation and
+    # local geometric contrast; domain_randomize is the -RD control (plain training on
+    # randomised samples). Defaults: the paper's where it gives them, else ours (documented).
+    drct: bool = False
+    drct_variant: str = "asymmetric"  # asymmetric (extra FFN on the auxiliary branch) | siamese
+    drct_contrast_weight: float = 0.01
+    drct_aux_weight: float = 1.0
+    drct_radius_m: float = 0.7
+    drct_neighbours: int = 8
+    drct_detach_aux: bool = True
+    drct_ffn_ratio: float = 2.0
+    domain_randomize: bool = False
+    dr_p_skip: float = 0.5
+    dr_p_step: float = 0.5
+    dr_max_noise_ratio: float = 0.1
+    dr_max_drop_ratio: float = 0.3
+    dr_jitter_m: float = 0.02
     # validation (OPE on the val split)
     val_every: int = 1
     val_max_tracklets: int | None = None
@@ -211,6 +229,28 @@ class TrainConfig:
             bad("adam_beta1", "must be in [0, 1) or null")
         if self.adam_eps is not None and not self.adam_eps > 0:
             bad("adam_eps", "must be > 0 or null")
+        if self.drct_variant not in DRCT_VARIANTS:
+            bad("drct_variant", f"must be one of {', '.join(DRCT_VARIANTS)}")
+        if self.drct and self.tracker in learned and not hasattr(
+                trackers.tracker_class(self.tracker), "build_fusion"):
+            bad("drct", f"needs a matching tracker (backbone -> fusion -> head), not "
+                f"{self.tracker!r}")
+        if ((self.drct or self.domain_randomize) and self.recipe in RECIPES
+                and self.recipe_value("loss_reduction") == "pooled"):
+            bad("loss_reduction", "DRCT and -RD add per-sample terms to the total: use 'sample'")
+        if self.drct and self.domain_randomize:
+            bad("domain_randomize", "is the -RD control of DRCT; use drct or domain_randomize")
+        for key in ("drct_contrast_weight", "drct_aux_weight", "dr_jitter_m"):
+            if not getattr(self, key) >= 0:
+                bad(key, "must be >= 0")
+        for key in ("drct_radius_m", "drct_ffn_ratio"):
+            if not getattr(self, key) > 0:
+                bad(key, "must be > 0")
+        if self.drct_neighbours < 1:
+            bad("drct_neighbours", "must be >= 1")
+        for key in ("dr_p_skip", "dr_p_step", "dr_max_noise_ratio", "dr_max_drop_ratio"):
+            if not 0 <= getattr(self, key) <= 1:
+                bad(key, "must be in [0, 1]")
         if self.device != "cpu" and not self.device.startswith("cuda"):
             bad("device", "must be cpu or cuda[:N]")
         if errors:

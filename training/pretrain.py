@@ -262,6 +262,13 @@ class Trainer:
         self.model = (model_factory or default_model_factory)(cfg).to(self.device)
         if cfg.init_weights is not None:
             self._load_init_weights(cfg.init_weights)
+        self.drct = None  # DRCT's auxiliary branch or the -RD randomiser (training.drct)
+        if cfg.drct or cfg.domain_randomize:
+            if self.world > 1:
+                raise TrainingError("drct / domain_randomize train in one process only")
+            from training.drct import build_hook
+
+            self.drct = build_hook(cfg, self.model).to(self.device)
         self.ema = WeightEMA(self.model, cfg.ema_decay) if cfg.ema_decay > 0 else None
         self._averaged: torch.nn.Module | None = None  # eval copy holding the EMA weights
         self.net: torch.nn.Module = self.model
@@ -278,7 +285,8 @@ class Trainer:
                 f"only {len(self.data)} training samples, fewer than one batch of {cfg.batch_size}"
             )
         self.base_opt = torch.optim.Adam(
-            self.model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
+            [*self.model.parameters(), *(self.drct.parameters() if self.drct else [])],
+            lr=cfg.lr, weight_decay=cfg.weight_decay,
             betas=(cfg.recipe_value("adam_beta1"), 0.999), eps=cfg.recipe_value("adam_eps"),
         )
         self.pooled = cfg.recipe_value("loss_reduction") == "pooled"
@@ -336,6 +344,7 @@ class Trainer:
             "scheduler": self.scheduler.state_dict(),
             "decorrelation": self.decor.state_dict() if self.decor else {},
             "ema": self.ema.state_dict() if self.ema else {},
+            "drct": self.drct.state_dict() if self.drct is not None else {},
             "rng": rng_state(),
             "epoch": self.epoch,
             "step": self.step,
@@ -357,6 +366,8 @@ class Trainer:
             self.decor.load_state_dict(ckpt["decorrelation"])
         if self.ema is not None:
             self.ema.load_state_dict(ckpt["ema"])
+        if self.drct is not None and ckpt.get("drct"):
+            self.drct.load_state_dict(ckpt["drct"])
         restore_rng_state(ckpt["rng"])
         self.epoch = int(ckpt["epoch"])
         self.step = int(ckpt["step"])
@@ -475,6 +486,14 @@ class Trainer:
             + f". The last good checkpoint ({self.out / 'last.pt'}) is left as it was."
         )
 
+    def _forward_losses(self, batch: dict[str, torch.Tensor], targets: dict[str, torch.Tensor]
+                        ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """The tracker's outputs and per-sample losses; with DRCT / -RD through its hook."""
+        if self.drct is not None:
+            return self.drct.forward_losses(self.net, self.model, batch, targets, self.step)
+        outputs = self.net(batch)
+        return outputs, self.model.loss(outputs, targets)
+
     def train_epoch(self) -> dict[str, float]:
         cfg = self.cfg
         epoch = self.epoch  # 0-based index of the epoch being trained
@@ -496,8 +515,7 @@ class Trainer:
         t0 = time.perf_counter()
         for sample in loader:
             batch, targets, indices = split_batch(sample, self.device, *self._sample_keys)
-            outputs = self.net(batch)
-            losses = self.model.loss(outputs, targets)
+            outputs, losses = self._forward_losses(batch, targets)
             self._check_finite(losses, indices)
             weights = self._sample_weights(outputs)
             loss = self._objective(losses, outputs, targets, weights)
@@ -505,8 +523,8 @@ class Trainer:
             loss.backward()
             if self.sam is not None:
                 def closure(batch=batch, targets=targets, weights=weights):
-                    out2 = self.net(batch)
-                    l2 = self._objective(self.model.loss(out2, targets), out2, targets, weights)
+                    out2, losses2 = self._forward_losses(batch, targets)
+                    l2 = self._objective(losses2, out2, targets, weights)
                     l2.backward()
                     return l2
 

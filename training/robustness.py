@@ -3,9 +3,12 @@ fog / rain / snow at levels 1..5, with the paper's robustness metrics and analys
 
 :func:`run_weather_benchmark` evaluates a tracker with :func:`training.evaluate.evaluate` on the
 clean env and on each ``(kind, level)`` (the env wrapped in :class:`envs.weather.WeatherWrapper`,
-same weather seed for every tracker), and returns a JSON-able result::
+same weather seed and fog rule for every tracker), on one env or, with ``num_envs``, on a vector
+env whose sub-envs each carry their own transform (batched ``act`` calls, as plain evaluation),
+and returns a JSON-able result::
 
-    {"tracker": name, "kinds": [...], "levels": [...], "weather_seed": int,
+    {"tracker": name, "kinds": [...], "levels": [...], "weather_seed": int, "fog_mode": str,
+     "num_envs": int,
      "clean": report, "weather": {kind: {level: report}},          # evaluate() reports
      "robustness": {kind: {group: {"clean": [S, P], "levels": [[S, P] x 5],
                                    "dr": [[S_j/S_c, P_j/P_c] x 5], "DR": [S, P],
@@ -121,7 +124,9 @@ def _frame_recorder(env, transform=None, corruption: bool = False):
             super().__init__(env)
             self.transform = transform
             self.corruption = corruption and transform is not None
-            self.records: dict[tuple[str, int], dict[str, float]] = {}
+            # one dict (tracklet, frame) -> record per episode, in order: a vector env keeps
+            # stepping a sub-env after its last tracklet, and those episodes must not count
+            self.episodes: list[dict[tuple[str, int], dict[str, float]]] = []
             self.template_hd: dict[str, float] = {}
             self._tracklet = None
             self._by_id = None
@@ -131,6 +136,7 @@ def _frame_recorder(env, transform=None, corruption: bool = False):
             if self._by_id is None:
                 self._by_id = {tr.tracklet_id: tr for tr in self.env.unwrapped.tracklets}
             self._tracklet = self._by_id[info["tracklet"]]
+            self.episodes.append({})
             if self.corruption and self._tracklet.tracklet_id not in self.template_hd:
                 self.template_hd[self._tracklet.tracklet_id] = self._box_hausdorff(0)
             return obs, info
@@ -152,7 +158,7 @@ def _frame_recorder(env, transform=None, corruption: bool = False):
             if self.corruption:
                 rec["target_hd"] = self._box_hausdorff(t)
                 rec["template_hd"] = self.template_hd.get(info["tracklet"], math.nan)
-            self.records[(info["tracklet"], t)] = rec
+            self.episodes[-1][(info["tracklet"], t)] = rec
             return obs, reward, terminated, truncated, info
 
     return _FrameRecorder(env, transform, corruption)
@@ -214,6 +220,8 @@ def run_weather_benchmark(
     out_dir: str | Path | None = None,
     tracklets: Sequence[int] | None = None,
     log: Callable[[str], None] | None = None,
+    num_envs: int | None = None,
+    fog_mode: str = "reference",
 ) -> dict[str, Any]:
     """Evaluate ``tracker`` clean and under every ``(kind, level)``; see the module docstring.
 
@@ -230,29 +238,48 @@ def run_weather_benchmark(
             ``weather_success.png`` and (with analysis) ``weather_analysis.png`` there.
         tracklets: indices of the env's tracklets to run (default all).
         log: called with a line after each setting (e.g. ``print``).
+        num_envs: ``None``: one env, one observation per ``act`` call. An int ``N >= 1``: a
+            ``SyncVectorEnv`` of ``N`` envs from ``make_env`` (each with its own weather
+            transform: the corruption of a frame depends on the seed, scene and frame only), so
+            ``act`` gets ``(N, ...)`` batches as in :func:`training.evaluate.evaluate`. With
+            ``N = 1`` the result equals the single-env one exactly; with more, a learned
+            tracker's batched forward can differ in the last bit (see ``evaluate``).
+        fog_mode: the fog rule, ``"reference"`` (default) or ``"lossy"``
+            (:mod:`envs.weather.fog`).
     """
-    from envs.weather import WeatherWrapper
+    import gymnasium as gym
+
+    from envs.weather import WeatherWrapper, check_fog_mode
     from training.evaluate import evaluate
     from training.evaluate import tracker_name as _tracker_name
 
     kinds_t = weather_kinds(kinds)
     levels_t = tuple(check_level(v) for v in levels)
+    check_fog_mode(fog_mode)
+    if num_envs is not None and (isinstance(num_envs, bool) or int(num_envs) != num_envs
+                                 or num_envs < 1):
+        raise ValueError(f"num_envs must be None or an integer >= 1; got {num_envs!r}")
     name = _tracker_name(tracker, name)
     say = log or (lambda _msg: None)
 
     def one(kind: str | None, level: int | None):
-        env = make_env()
-        transform = None
-        if kind is not None:
-            env = WeatherWrapper(env, kind, level, seed=weather_seed)
-            transform = env.transform
-        rec = _frame_recorder(env, transform, corruption=analysis)
+        recorders = []
+        for _ in range(num_envs or 1):
+            env = make_env()
+            transform = None
+            if kind is not None:
+                env = WeatherWrapper(env, kind, level, seed=weather_seed, fog_mode=fog_mode)
+                transform = env.transform
+            recorders.append(_frame_recorder(env, transform, corruption=analysis))
+        target = recorders[0]
+        if num_envs is not None:
+            target = gym.vector.SyncVectorEnv([lambda r=r: r for r in recorders])
         try:
-            report = evaluate(tracker, rec, seed=seed, tracklets=tracklets, name=name,
+            report = evaluate(tracker, target, seed=seed, tracklets=tracklets, name=name,
                               progress=progress)
         finally:
-            rec.close()
-        return report, rec.records
+            target.close()
+        return report, _real_records(recorders, tracklets, vector=num_envs is not None)
 
     clean, clean_records = one(None, None)
     say(f"clean: success {clean['mean']['success']:.2f} precision {clean['mean']['precision']:.2f}")
@@ -262,6 +289,8 @@ def run_weather_benchmark(
         "levels": list(levels_t),
         "seed": seed,
         "weather_seed": weather_seed,
+        "fog_mode": fog_mode,
+        "num_envs": num_envs or 1,
         "clean": clean,
         "weather": {},
         "robustness": {},
@@ -281,6 +310,26 @@ def run_weather_benchmark(
     if out_dir is not None:
         save_weather(result, out_dir)
     return result
+
+
+def _real_records(recorders: list, tracklets: Sequence[int] | None, vector: bool
+                  ) -> dict[tuple[str, int], dict[str, float]]:
+    """The per-frame records of the episodes :func:`training.evaluate.evaluate` counted: all of
+    a single env's; of a vector env, the first ``len(order_i)`` episodes of sub-env ``i`` (the
+    same :func:`~training.evaluate.split_tracklets` assignment as ``evaluate``'s vector runner;
+    later episodes of a sub-env that is done only keep the batch full)."""
+    if not vector:
+        return {k: v for episode in recorders[0].episodes for k, v in episode.items()}
+    from training.evaluate import split_tracklets
+
+    lengths = recorders[0].unwrapped.tracklet_lengths
+    indices = range(len(lengths)) if tracklets is None else [int(i) for i in tracklets]
+    counts = [len(o) for o in split_tracklets([lengths[i] for i in indices], len(recorders))]
+    out: dict[tuple[str, int], dict[str, float]] = {}
+    for rec, count in zip(recorders, counts, strict=True):
+        for episode in rec.episodes[:count]:
+            out.update(episode)
+    return out
 
 
 def _robustness(clean: dict, per_level: dict, levels: Sequence[int]) -> dict[str, Any]:
@@ -348,9 +397,10 @@ def format_weather_table(results: dict[str, Any] | Sequence[dict[str, Any]]) -> 
 
 
 def plot_success_vs_level(results: dict[str, Any] | Sequence[dict[str, Any]], path: str | Path,
-                          metric: str = "success") -> Path:
+                          metric: str = "success", groups: Sequence[str] | None = None) -> Path:
     """One panel per weather kind: Success (or Precision) against level (0 = clean), one line per
-    category and the mean, per tracker."""
+    category and the mean, per tracker; ``groups`` restricts the lines (e.g. ``["mean",
+    "unseen"]``; default: every category and the mean)."""
     plt = pyplot()
 
     if isinstance(results, dict):
@@ -361,11 +411,11 @@ def plot_success_vs_level(results: dict[str, Any] | Sequence[dict[str, Any]], pa
     for ax, kind in zip(axes[0], kinds, strict=True):
         for r in results:
             for g, e in r["robustness"][kind].items():
-                if g in ("observed", "unseen"):
+                if (g not in groups) if groups is not None else g in ("observed", "unseen"):
                     continue
                 xs = [0] + list(r["levels"])
                 ys = [e["clean"][k]] + [x[k] for x in e["levels"]]
-                style = "-o" if g == "mean" else "--."
+                style = "-o" if g in ("mean", "observed") else "--."
                 label = g if len(results) == 1 else f"{r['tracker']} {g}"
                 ax.plot(xs, ys, style, label=label, lw=2 if g == "mean" else 1)
         ax.set_title(kind.capitalize())
@@ -445,6 +495,10 @@ def add_weather_arguments(parser) -> None:
                         help="seed of the weather corruption (default 0)")
     parser.add_argument("--no-analysis", action="store_true",
                         help="skip the Sec. IV-A analysis (IoU change vs distance / Hausdorff)")
+    parser.add_argument("--fog-mode", default="reference", choices=("reference", "lossy"),
+                        help="fog rule: reference (the released fog simulation code: fog "
+                        "returns relocate points, none removed; default) or lossy (shifted "
+                        "tables, weak returns removed); docs/weather.md")
 
 
 def run_weather_eval(
@@ -461,6 +515,8 @@ def run_weather_eval(
     name: str | None = None,
     tracklets: Sequence[int] | None = None,
     print_fn: Callable[[str], None] = print,
+    num_envs: int | None = None,
+    fog_mode: str = "reference",
 ) -> dict[str, Any]:
     """What ``pointtrack eval --weather ...`` runs: :func:`run_weather_benchmark`, then print the
     Tables III–IV layout and (with ``out_dir``) write JSON, table and plots."""
@@ -469,7 +525,7 @@ def run_weather_eval(
     result = run_weather_benchmark(
         tracker, make_env, weather, levels, seed=seed, weather_seed=weather_seed, name=name,
         analysis=analysis, progress=progress, out_dir=out_dir, tracklets=tracklets,
-        log=print_fn,
+        log=print_fn, num_envs=num_envs, fog_mode=fog_mode,
     )
     print_fn(format_weather_table(result))
     if out_dir is not None:

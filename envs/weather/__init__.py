@@ -4,9 +4,10 @@ scans in the sensor frame, plus the domain-randomisation augmentation of ``003_�
 Every corruption has the signature
 ``corruption(points (N, 3) float32, intensity (N,) float32, rng: numpy.random.Generator,
 level: int 1..5) -> (points (N', 3) float32, intensity (N',) float32)``:
-vectorised, deterministic from ``rng``, lost returns removed (never left at the origin), an
-empty scan stays empty, intensities stay on the scan's own scale. The physical parameters of
-the levels live in :mod:`envs.weather.levels`.
+vectorised, deterministic from ``rng``, lost returns removed (never left at the origin; the
+default fog rule, the released reference code's, loses none), an empty scan stays empty,
+intensities stay on the scan's own scale. The physical parameters of the levels live in
+:mod:`envs.weather.levels`.
 
 - :func:`corrupt` — dispatch by kind name (``"fog"``, ``"rain"``, ``"snow"``).
 - :class:`WeatherTransform` — the env's ``scan_transform`` hook: ``(N, 4)`` scans, seeded per
@@ -23,7 +24,7 @@ import numpy as np
 
 from envs.weather import fog as _fog_module
 from envs.weather import precipitation as _precipitation_module
-from envs.weather.fog import fog_alpha
+from envs.weather.fog import FOG_MODES, check_fog_mode, fog_alpha
 from envs.weather.levels import (
     KINDS,
     LEVELS,
@@ -51,17 +52,28 @@ CORRUPTIONS: dict[str, Corruption] = {
 
 
 def corrupt(
-    kind: str, points: np.ndarray, intensity: np.ndarray, rng: np.random.Generator, level: int
+    kind: str,
+    points: np.ndarray,
+    intensity: np.ndarray,
+    rng: np.random.Generator,
+    level: int,
+    *,
+    fog_mode: str = "reference",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply weather ``kind`` at ``level`` to a whole scan; see the module docstring.
+    ``fog_mode`` (fog only): ``"reference"`` (the released code's rule, never removes a point)
+    or ``"lossy"`` (:mod:`envs.weather.fog`).
 
-    Raises ValueError listing the valid kinds / levels for unknown ones, and a clear error when
-    ``intensity`` is missing.
+    Raises ValueError listing the valid kinds / levels / fog modes for unknown ones, and a clear
+    error when ``intensity`` is missing.
     """
     check_kind(kind)
     check_level(level)
+    check_fog_mode(fog_mode)
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng must be a numpy.random.Generator; got {type(rng).__name__}")
+    if kind == "fog":
+        return _fog_module.fog(points, intensity, rng, level, mode=fog_mode)
     return CORRUPTIONS[kind](points, intensity, rng, level)
 
 
@@ -69,6 +81,7 @@ from envs.weather.wrapper import WeatherTransform, WeatherWrapper  # noqa: E402
 
 __all__ = [
     "CORRUPTIONS",
+    "FOG_MODES",
     "KINDS",
     "LEVELS",
     "PARAMETERS",
@@ -76,6 +89,7 @@ __all__ = [
     "DomainRandomization",
     "WeatherTransform",
     "WeatherWrapper",
+    "check_fog_mode",
     "check_kind",
     "check_level",
     "corrupt",

@@ -32,8 +32,13 @@ def domain_randomize(
     max_noise_ratio: float = 0.1,
     max_drop_ratio: float = 0.3,
     jitter_m: float = 0.02,
-) -> np.ndarray:
-    """Algorithm 1 on a point set ``(N, C)`` (C >= 3, xyz first) -> ``(N', C)`` float32."""
+    return_source: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Algorithm 1 on a point set ``(N, C)`` (C >= 3, xyz first) -> ``(N', C)`` float32.
+
+    With ``return_source`` also ``(N',)`` int64: the input index of each output point, ``-1``
+    for an added noise point (so per-point labels can follow the points). The random stream is
+    the same either way."""
     pts = np.asarray(points, dtype=np.float32)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise ValueError(f"points must be (N, C>=3); got shape {pts.shape}")
@@ -47,7 +52,7 @@ def domain_randomize(
     u = rng.random(4)
     n = len(pts)
     if u[0] < p_skip or n == 0:
-        return pts.copy()
+        return (pts.copy(), np.arange(n)) if return_source else pts.copy()
     keep = np.ones(n, dtype=bool)
     if u[2] < p_step:  # dropout (indices of the input set only)
         max_drop = int(max_drop_ratio * n)
@@ -55,6 +60,7 @@ def domain_randomize(
             r = int(rng.integers(1, max_drop + 1))
             keep[rng.choice(n, size=r, replace=False)] = False
     parts = [pts[keep]]
+    sources = [np.flatnonzero(keep)]
     if u[1] < p_step:  # Gaussian noise points
         n_max = max(1, int(max_noise_ratio * n))
         k = int(rng.integers(1, n_max + 1))
@@ -65,10 +71,11 @@ def domain_randomize(
         if pts.shape[1] > 3:
             noise[:, 3:] = pts[rng.integers(0, n, size=k), 3:]
         parts.append(noise)
+        sources.append(np.full(k, -1, dtype=np.int64))
     out = np.concatenate(parts) if len(parts) > 1 else parts[0].copy()
     if u[3] < p_step and jitter_m > 0:
         out[:, :3] += rng.uniform(-jitter_m, jitter_m, size=(len(out), 3)).astype(np.float32)
-    return out
+    return (out, np.concatenate(sources)) if return_source else out
 
 
 @dataclass(frozen=True)
@@ -91,4 +98,20 @@ class DomainRandomization:
             max_noise_ratio=self.max_noise_ratio,
             max_drop_ratio=self.max_drop_ratio,
             jitter_m=self.jitter_m,
+        )
+
+    def randomize_with_source(
+        self, points: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(points (N', C), source (N',))``: :func:`domain_randomize` with
+        ``return_source=True`` (``-1`` marks an added noise point)."""
+        return domain_randomize(
+            points,
+            rng,
+            p_skip=self.p_skip,
+            p_step=self.p_step,
+            max_noise_ratio=self.max_noise_ratio,
+            max_drop_ratio=self.max_drop_ratio,
+            jitter_m=self.jitter_m,
+            return_source=True,
         )

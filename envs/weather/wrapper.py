@@ -37,10 +37,14 @@ class WeatherTransform:
     the tracklets of a scene).
     """
 
-    def __init__(self, kind: str, level: int, seed: int = 0, cache_size: int = 4) -> None:
+    def __init__(self, kind: str, level: int, seed: int = 0, cache_size: int = 4,
+                 fog_mode: str = "reference") -> None:
+        from envs.weather.fog import check_fog_mode
+
         self.kind = check_kind(kind)
         self.level = check_level(level)
         self.seed = int(seed)
+        self.fog_mode = check_fog_mode(fog_mode)
         self.cache_size = int(cache_size)
         self._cache: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
 
@@ -53,6 +57,7 @@ class WeatherTransform:
             "parameter": parameter(self.kind, self.level),
             "unit": UNITS[self.kind],
             "seed": self.seed,
+            **({"fog_mode": self.fog_mode} if self.kind == "fog" else {}),
         }
 
     def rng(self, scene: str, frame: int) -> np.random.Generator:
@@ -75,7 +80,8 @@ class WeatherTransform:
             raise ValueError(
                 f"WeatherTransform needs (N, 4) scans (x, y, z, intensity); got shape {pts.shape}"
             )
-        xyz, inten = corrupt(self.kind, pts[:, :3], pts[:, 3], self.rng(scene, frame), self.level)
+        xyz, inten = corrupt(self.kind, pts[:, :3], pts[:, 3], self.rng(scene, frame), self.level,
+                             fog_mode=self.fog_mode)
         out = np.empty((len(xyz), pts.shape[1]), np.float32)
         out[:, :3] = xyz
         out[:, 3] = inten
@@ -89,17 +95,17 @@ class WeatherTransform:
         return out
 
     def __repr__(self) -> str:
-        return f"WeatherTransform({self.kind!r}, {self.level}, seed={self.seed})"
+        return (f"WeatherTransform({self.kind!r}, {self.level}, seed={self.seed}, "
+                f"fog_mode={self.fog_mode!r})")
+
+    def _key(self) -> tuple[str, int, int, str]:
+        return (self.kind, self.level, self.seed, self.fog_mode)
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, WeatherTransform) and (self.kind, self.level, self.seed) == (
-            other.kind,
-            other.level,
-            other.seed,
-        )
+        return isinstance(other, WeatherTransform) and self._key() == other._key()
 
     def __hash__(self) -> int:
-        return hash((self.kind, self.level, self.seed))
+        return hash(self._key())
 
     def __getstate__(self) -> dict[str, Any]:
         state = self.__dict__.copy()
@@ -108,14 +114,16 @@ class WeatherTransform:
 
 
 class WeatherWrapper(gym.Wrapper):
-    """Serve ``kind`` at ``level`` (seeded by ``seed``) to a built ``TrackingEnv``.
+    """Serve ``kind`` at ``level`` (seeded by ``seed``; ``fog_mode`` as in
+    :func:`envs.weather.corrupt`) to a built ``TrackingEnv``.
 
     Installs a :class:`WeatherTransform` as the unwrapped env's ``scan_transform`` (the env must
     have that attribute), clears its scan cache, and sets ``info["weather"]`` on reset and step.
     ``close()`` restores the previous transform. Observation and action spaces are unchanged.
     """
 
-    def __init__(self, env: gym.Env, kind: str, level: int, seed: int = 0) -> None:
+    def __init__(self, env: gym.Env, kind: str, level: int, seed: int = 0,
+                 fog_mode: str = "reference") -> None:
         super().__init__(env)
         base = env.unwrapped
         if not hasattr(base, "scan_transform"):
@@ -123,7 +131,7 @@ class WeatherWrapper(gym.Wrapper):
                 f"{type(base).__name__} has no scan_transform hook; WeatherWrapper needs a "
                 "pointtrack TrackingEnv"
             )
-        self.transform = WeatherTransform(kind, level, seed)
+        self.transform = WeatherTransform(kind, level, seed, fog_mode=fog_mode)
         self._previous = base.scan_transform
         self._install(self.transform)
 

@@ -241,7 +241,8 @@ def load_trackers(args: argparse.Namespace) -> dict[str, Any]:
 def _run_weather(args: argparse.Namespace) -> int:
     """``--weather KINDS``: the adverse-weather benchmark (``training.robustness``): each tracker
     clean and under every kind and level, printed as Tables III-IV of ``003_…``; with ``--out``,
-    JSON, table and plots per tracker under ``<out>/weather_<tracker>/``."""
+    JSON, table and plots per tracker under ``<out>/weather_<tracker>/``. ``--num-envs N > 1``
+    runs every condition on N sub-envs (batched ``act``); ``--fog-mode`` picks the fog rule."""
     from pathlib import Path
 
     from training.evaluate import observation_keys_for
@@ -266,6 +267,8 @@ def _run_weather(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             name=name,
             tracklets=subset,
+            num_envs=args.num_envs if args.num_envs > 1 else None,
+            fog_mode=args.fog_mode,
         )
     base.close()
     return 0

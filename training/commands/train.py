@@ -1,4 +1,4 @@
-"""`pointtrack train`: pretrain P2B / BAT / GPT (plain -U, decorrelation -W, SAM -S).
+"""`pointtrack train`: pretrain P2B / BAT / GPT (plain -U, decorrelation -W, SAM -S; DRCT).
 
 Examples::
 
@@ -44,6 +44,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--version", dest="nuscenes_version",
                         help="--dataset nuscenes: table folder (v1.0-trainval under --data-root, "
                              "else v1.0-mini, the synthetic world in nuScenes layout)")
+    parser.add_argument("--drct", action="store_true", default=None,
+                        help="DRCT: dual-branch training with domain randomisation and local "
+                             "geometric contrast (training.drct; combinable with --weighting; "
+                             "drct_* config keys via --set)")
+    parser.add_argument("--drct-variant", dest="drct_variant", choices=("asymmetric", "siamese"),
+                        help="asymmetric (DRCT: auxiliary copy with an extra FFN) or siamese "
+                             "(shared parameters, the paper's Fig. 7 ablation)")
+    parser.add_argument("--domain-randomize", dest="domain_randomize", action="store_true",
+                        default=None, help="the -RD control: plain training on domain-"
+                                           "randomised samples (dr_* config keys)")
     parser.add_argument("--preset", help="synthetic world preset (tiny, small, default)")
     parser.add_argument("--sensor", help="synthetic LiDAR profile (hdl64, hdl32)")
     parser.add_argument("--data-root", dest="data_root", help="KITTI tracking root")
