@@ -89,6 +89,8 @@ def test_branches_start_equal_and_the_tap_leaves_the_backbone_alone():
     batch, _ = a_batch(2)
     model.eval()
     drct.aux.eval()
+    # one batched eval forward (batch-invariant eval would run the backbone once per sample)
+    model.batch_invariant = drct.aux.batch_invariant = False
     with tap_backbone(model) as p, torch.no_grad():
         model(batch)
     with tap_backbone(drct.aux, drct.ffn) as a, torch.no_grad():
