@@ -28,8 +28,12 @@ from envs.tracking_env import OBSERVATION_KEYS, make_synthetic_env  # noqa: E402
 
 
 def observations(steps: int) -> list[dict[str, np.ndarray]]:
-    env = make_synthetic_env(preset="small", split="test", setting="kitti-1",
-                             observation_keys=(*OBSERVATION_KEYS, "previous_search"))
+    env = make_synthetic_env(
+        preset="small",
+        split="test",
+        setting="kitti-1",
+        observation_keys=(*OBSERVATION_KEYS, "previous_search"),
+    )
     obs, _ = env.reset(seed=0)
     out = []
     for _ in range(steps):
@@ -71,8 +75,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, model in models:
         ms = act_cpu_ms(model, obs)
         base = base or ms
-        print(f"{name}: median act CPU {ms:.1f} ms ({base / ms:.2f}x P2B's frames/s) over "
-              f"{len(obs)} observations", flush=True)
+        print(
+            f"{name}: median act CPU {ms:.1f} ms ({base / ms:.2f}x P2B's frames/s) over "
+            f"{len(obs)} observations",
+            flush=True,
+        )
     return 0
 
 

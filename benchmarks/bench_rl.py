@@ -44,8 +44,9 @@ def main() -> None:
     print(f"{args.tracker}, {args.threads} thread(s), world {args.preset}:")
     for k in ks:
         venv = make_vec_env(factory, k, cfg.clip_length)
-        policy = TrackerPolicy(venv.observation_space, venv.action_space, lambda _: 3e-4,
-                               tracker=args.tracker)
+        policy = TrackerPolicy(
+            venv.observation_space, venv.action_space, lambda _: 3e-4, tracker=args.tracker
+        )
         obs = venv.reset()
         batches, t_policy, t_env = [], 0.0, 0.0
         for _ in range(steps + 1):
@@ -64,16 +65,23 @@ def main() -> None:
             policy.tracker.act(b)
         t_act = time.perf_counter() - t0
         n = steps * k
-        print(f"  K={k}: rollout {n / (t_policy + t_env):.1f} steps/s (policy forward "
-              f"{1e3 * t_policy / steps:.1f} ms/batch, tracker.act {1e3 * t_act / steps:.1f} "
-              f"ms/batch, env {1e3 * t_env / n:.1f} ms/step)")
+        print(
+            f"  K={k}: rollout {n / (t_policy + t_env):.1f} steps/s (policy forward "
+            f"{1e3 * t_policy / steps:.1f} ms/batch, tracker.act {1e3 * t_act / steps:.1f} "
+            f"ms/batch, env {1e3 * t_env / n:.1f} ms/step)"
+        )
         venv.close()
     pool = {key: np.concatenate([b[key] for b in batches]) for key in batches[0]}
     size = min(64, len(pool["search"]))
     mini = {key: torch.as_tensor(v[:size]) for key, v in pool.items()}
     for parts in ("head", "all"):
-        policy = TrackerPolicy(venv.observation_space, venv.action_space, lambda _: 3e-4,
-                               tracker=args.tracker, train_parts=parts)
+        policy = TrackerPolicy(
+            venv.observation_space,
+            venv.action_space,
+            lambda _: 3e-4,
+            tracker=args.tracker,
+            train_parts=parts,
+        )
         actions = torch.zeros(size, 4)
         times = []
         for _ in range(2 if args.quick else 3):
@@ -85,8 +93,10 @@ def main() -> None:
             policy.optimizer.step()
             times.append(time.perf_counter() - t0)
         best = min(times[1:])
-        print(f"  update ({parts}): {size / best:.1f} samples/s (minibatch {size}, "
-              f"{1e3 * best:.0f} ms)")
+        print(
+            f"  update ({parts}): {size / best:.1f} samples/s (minibatch {size}, "
+            f"{1e3 * best:.0f} ms)"
+        )
 
 
 if __name__ == "__main__":

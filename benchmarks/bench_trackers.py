@@ -93,13 +93,20 @@ def motion_batch(batch_size: int, seed: int) -> tuple[dict, dict]:
     batch, targets = toy_batch(batch_size, seed=seed)
     shift = torch.tensor([0.4, 0.0, 0.0])
     box = targets["search_box"][:, [0, 1, 2, 6]]
-    inputs = {"search": batch["search"], "previous_search": batch["search"] - shift,
-              "size": batch["size"], "prior_is_gt": torch.ones(batch_size)}
+    inputs = {
+        "search": batch["search"],
+        "previous_search": batch["search"] - shift,
+        "size": batch["size"],
+        "prior_is_gt": torch.ones(batch_size),
+    }
     labels = targets["search_labels"]
-    return inputs, {"seg_labels": torch.cat([labels, labels], dim=1), "box": box,
-                    "prev_box": box - torch.cat([shift, torch.zeros(1)]),
-                    "motion_box": torch.cat([shift, torch.zeros(1)]).expand(batch_size, 4),
-                    "moving": torch.ones(batch_size)}
+    return inputs, {
+        "seg_labels": torch.cat([labels, labels], dim=1),
+        "box": box,
+        "prev_box": box - torch.cat([shift, torch.zeros(1)]),
+        "motion_box": torch.cat([shift, torch.zeros(1)]).expand(batch_size, 4),
+        "moving": torch.ones(batch_size),
+    }
 
 
 def tracker_inputs(model, batch_size: int, seed: int) -> tuple[dict, dict]:
@@ -123,8 +130,12 @@ def env_act_ms(model, steps: int) -> float:
     from envs.tracking_env import make_synthetic_env
     from training.evaluate import observation_keys_for
 
-    env = make_synthetic_env(preset="small", split="test", setting="kitti-1",
-                             observation_keys=observation_keys_for([model]))
+    env = make_synthetic_env(
+        preset="small",
+        split="test",
+        setting="kitti-1",
+        observation_keys=observation_keys_for([model]),
+    )
     obs, _ = env.reset(seed=0)
     times = []
     for _ in range(steps):
@@ -155,16 +166,21 @@ def eval_modes(bsz: int, reps: int, device: torch.device, sync) -> None:
     for name in ("p2b-kitti1-u", "bat-kitti1-u", "gpt-kitti1-u"):
         model = trackers.load(name, map_location=device)
         row = {}
-        for mode, invariant, fast in (("shipped", True, True), ("batched", False, True),
-                                      ("plain", True, False)):
+        for mode, invariant, fast in (
+            ("shipped", True, True),
+            ("batched", False, True),
+            ("plain", True, False),
+        ):
             model.batch_invariant, model.fast_eval = invariant, fast
             with torch.inference_mode():
                 row[mode] = timeit(lambda m=model: m(batch), reps, sync=sync) * 1e3 / bsz
         model.batch_invariant, model.fast_eval = True, True
-        print(f"{name} eval, batch {bsz}, ms/frame: per-sample (shipped) {row['shipped']:.1f} | "
-              f"batched {row['batched']:.1f} (batch invariance costs "
-              f"{100 * (row['shipped'] / row['batched'] - 1):+.0f} %) | plain path "
-              f"{row['plain']:.1f} ({row['plain'] / row['shipped']:.1f}x the fast path)")
+        print(
+            f"{name} eval, batch {bsz}, ms/frame: per-sample (shipped) {row['shipped']:.1f} | "
+            f"batched {row['batched']:.1f} (batch invariance costs "
+            f"{100 * (row['shipped'] / row['batched'] - 1):+.0f} %) | plain path "
+            f"{row['plain']:.1f} ({row['plain'] / row['shipped']:.1f}x the fast path)"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -174,18 +190,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt", "m2track"])
     parser.add_argument("--model-size", default="default", help="default | slim")
-    parser.add_argument("--eval-batch", type=int, default=8,
-                        help="batch of the eval-mode comparison (0: skip it)")
-    parser.add_argument("--env-steps", type=int, default=0,
-                        help="also time act() on this many synthetic-env observations")
+    parser.add_argument(
+        "--eval-batch", type=int, default=8, help="batch of the eval-mode comparison (0: skip it)"
+    )
+    parser.add_argument(
+        "--env-steps",
+        type=int,
+        default=0,
+        help="also time act() on this many synthetic-env observations",
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     reps = 3 if args.quick else 10
     big = 8 if args.quick else 32
-    print(f"torch {torch.__version__}, device {device}, threads {torch.get_num_threads()}, "
-          f"load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"torch {torch.__version__}, device {device}, threads {torch.get_num_threads()}, "
+        f"load average {os.getloadavg()[0]:.2f}"
+    )
 
     results = {}
     for name in args.trackers:
@@ -220,15 +243,19 @@ def main(argv: list[str] | None = None) -> int:
             row["env_act_ms"] = env_act_ms(model, args.env_steps)
             env_note = f" | act on env obs {row['env_act_ms']:6.1f} ms"
         results[name] = row
-        print(f"{name:7s} params {params / 1e6:.2f} M | batch 1: {row['ms_b1']:7.1f} ms "
-              f"(CPU {row['cpu_ms_b1']:6.1f} ms, {row['fps_b1']:5.1f} frames/s) | "
-              f"batch {big}: {row[f'ms_b{big}']:8.1f} ms "
-              f"({row[f'fps_b{big}']:6.1f} frames/s) | act(1 obs) {row['act_ms']:6.1f} ms | "
-              f"train step b8 {row['train_ms_b8']:7.1f} ms{env_note}")
+        print(
+            f"{name:7s} params {params / 1e6:.2f} M | batch 1: {row['ms_b1']:7.1f} ms "
+            f"(CPU {row['cpu_ms_b1']:6.1f} ms, {row['fps_b1']:5.1f} frames/s) | "
+            f"batch {big}: {row[f'ms_b{big}']:8.1f} ms "
+            f"({row[f'fps_b{big}']:6.1f} frames/s) | act(1 obs) {row['act_ms']:6.1f} ms | "
+            f"train step b8 {row['train_ms_b8']:7.1f} ms{env_note}"
+        )
     if "p2b" in results:
         base = results["p2b"]["fps_b1"]
-        print("frames/s at batch 1 relative to P2B: "
-              + ", ".join(f"{n} {r['fps_b1'] / base:.2f}x" for n, r in results.items()))
+        print(
+            "frames/s at batch 1 relative to P2B: "
+            + ", ".join(f"{n} {r['fps_b1'] / base:.2f}x" for n, r in results.items())
+        )
 
     if args.eval_batch > 0:
         eval_modes(args.eval_batch, reps, device, sync)
@@ -242,16 +269,20 @@ def main(argv: list[str] | None = None) -> int:
         assert torch.equal(fast_idx, naive_idx)
         t_fast = timeit(lambda x=x: ops.farthest_point_sample(x, 512), reps)
         t_naive = timeit(lambda x=x: naive_fps(x, 512), 1, warmup=0)
-        print(f"FPS 1024->512, batch {bsz}: {t_fast * 1e3:.1f} ms (naive per-row loop "
-              f"{t_naive * 1e3:.1f} ms, {t_naive / t_fast:.1f}x)")
+        print(
+            f"FPS 1024->512, batch {bsz}: {t_fast * 1e3:.1f} ms (naive per-row loop "
+            f"{t_naive * 1e3:.1f} ms, {t_naive / t_fast:.1f}x)"
+        )
         assert torch.equal(ops.ball_query(0.3, 32, x, c), naive_ball_query(0.3, 32, x, c))
         t_fast = timeit(lambda x=x, c=c: ops.ball_query(0.3, 32, x, c), reps)
         t_naive = timeit(lambda x=x, c=c: naive_ball_query(0.3, 32, x, c), 1, warmup=0)
         t_pairs = timeit(lambda x=x, c=c: ops.ball_query_pairs(0.3, 32, x, c), reps)
-        print(f"ball query 512 centres x 1024 points (r 0.3, k 32), batch {bsz}: "
-              f"{t_fast * 1e3:.2f} ms padded (naive per-centre loop {t_naive * 1e3:.1f} ms, "
-              f"{t_naive / t_fast:.0f}x); {t_pairs * 1e3:.2f} ms as the ragged pairs the "
-              f"backbone uses in eval")
+        print(
+            f"ball query 512 centres x 1024 points (r 0.3, k 32), batch {bsz}: "
+            f"{t_fast * 1e3:.2f} ms padded (naive per-centre loop {t_naive * 1e3:.1f} ms, "
+            f"{t_naive / t_fast:.0f}x); {t_pairs * 1e3:.2f} ms as the ragged pairs the "
+            f"backbone uses in eval"
+        )
     return 0
 
 

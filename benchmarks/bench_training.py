@@ -27,8 +27,9 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3)
     parser.add_argument("--trackers", default="p2b,bat,gpt")
     parser.add_argument("--config", choices=("slim", "default"), default="slim")
-    parser.add_argument("--modes", default="none,decorrelation,sam",
-                        help="weightings to time (comma-separated)")
+    parser.add_argument(
+        "--modes", default="none,decorrelation,sam", help="weightings to time (comma-separated)"
+    )
     parser.add_argument("--recipe", choices=("v1", "v2"), default="v2")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
@@ -43,19 +44,29 @@ def main() -> None:
     t0 = time.perf_counter()
     for i in range(n):
         data[i % len(data)]
-    print(f"samples: {n / (time.perf_counter() - t0):.0f} samples/s built "
-          f"(TrackingSamples on the toy dataset, 1 process)")
+    print(
+        f"samples: {n / (time.perf_counter() - t0):.0f} samples/s built "
+        f"(TrackingSamples on the toy dataset, 1 process)"
+    )
 
     names = ["p2b"] if args.quick else args.trackers.split(",")
     modes = ["none", "decorrelation"] if args.quick else args.modes.split(",")
     steps = 2 if args.quick else args.steps
-    print(f"training step, batch {args.batch}, {args.threads} thread(s), {args.config} widths, "
-          f"recipe {args.recipe}:")
+    print(
+        f"training step, batch {args.batch}, {args.threads} thread(s), {args.config} widths, "
+        f"recipe {args.recipe}:"
+    )
     for name in names:
         for mode in modes:
             cfg = TrainConfig(
-                tracker=name, weighting=mode, batch_size=args.batch, epochs=1, recipe=args.recipe,
-                iters_per_epoch=steps + 1, progress=False, out="/tmp/pointtrack-bench-training",
+                tracker=name,
+                weighting=mode,
+                batch_size=args.batch,
+                epochs=1,
+                recipe=args.recipe,
+                iters_per_epoch=steps + 1,
+                progress=False,
+                out="/tmp/pointtrack-bench-training",
                 tracker_config=tracker_config(name, args.config),
             ).validate()
             trainer = Trainer(cfg, train_data=data, val_fn=False)
@@ -75,8 +86,9 @@ def main() -> None:
                 if trainer.sam is not None:
                     trainer.sam.first_step()
                     out2 = trainer.net(batch)
-                    trainer._objective(trainer.model.loss(out2, targets), out2, targets,
-                                       w).backward()
+                    trainer._objective(
+                        trainer.model.loss(out2, targets), out2, targets, w
+                    ).backward()
                     trainer.sam.second_step()
                 else:
                     trainer.base_opt.step()

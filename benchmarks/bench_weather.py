@@ -65,12 +65,15 @@ def bench_corruptions(repeats: int) -> None:
             rng = np.random.default_rng(0)
             ms = median_ms(lambda k=kind, lv=level, g=rng: w.corrupt(k, pts, inten, g, lv), repeats)
             out, _ = w.corrupt(kind, pts, inten, np.random.default_rng(0), level)
-            print(f"  {w.describe(kind, level):<36} {ms:6.1f} ms   kept {len(out) / len(pts):6.1%}"
-                  f"   (one-off table {table_ms:5.1f} ms)")
+            print(
+                f"  {w.describe(kind, level):<36} {ms:6.1f} ms   kept {len(out) / len(pts):6.1%}"
+                f"   (one-off table {table_ms:5.1f} ms)"
+            )
     xyz = np.column_stack([pts, inten])
     for n in (len(xyz), 1024):
         sub = xyz[:n]
         rng = np.random.default_rng(0)
+
         def aug(s=sub, g=rng):
             return w.domain_randomize(s, g, p_skip=0.0, p_step=1.0)
 
@@ -84,8 +87,10 @@ def bench_env(quick: bool) -> None:
 
     frames = 10 if quick else 30
     ds = make_toy_dataset(categories=("Car", "Pedestrian"), num_frames=frames, num_clutter=120_000)
-    print(f"env steps on 120k-point scans, {len(ds.tracklets)} tracklets x {frames} frames "
-          "(CPU ms per step):")
+    print(
+        f"env steps on 120k-point scans, {len(ds.tracklets)} tracklets x {frames} frames "
+        "(CPU ms per step):"
+    )
     for label, make in (
         ("clean", lambda: TrackingEnv(ds)),
         ("rain L5", lambda: WeatherWrapper(TrackingEnv(ds), "rain", 5)),
@@ -131,37 +136,48 @@ def compare_rules(preset: str) -> None:
             best = (n_target, tr, scan, box)
     n_target, tr, scan, box = best
     dist = float(np.linalg.norm(box[:2]))
-    print(f"{preset} test tracklet {tr.tracklet_id} ({tr.category}) frame 0: {len(scan):,} points,"
-          f" {n_target} in the target box at {dist:.1f} m")
+    print(
+        f"{preset} test tracklet {tr.tracklet_id} ({tr.category}) frame 0: {len(scan):,} points,"
+        f" {n_target} in the target box at {dist:.1f} m"
+    )
     pts, inten = scan[:, :3], scan[:, 3]
     r_in = np.linalg.norm(pts, axis=1)
     for mode in ("reference", "lossy"):
         print(f"  fog, {mode} rule:")
         for level, alpha in enumerate(FOG_ALPHA_PER_M, start=1):
-            out, _, src = fog_alpha(pts, inten, np.random.default_rng(0), alpha,
-                                    return_source=True, mode=mode)
+            out, _, src = fog_alpha(
+                pts, inten, np.random.default_rng(0), alpha, return_source=True, mode=mode
+            )
             r_out = np.linalg.norm(out, axis=1)
             fog = r_out < r_in[src] - 0.5
             in_box = int(points_in_box(out, box).sum())
             q = np.percentile(r_out[fog], [5, 50, 95]) if fog.any() else [np.nan] * 3
-            print(f"    L{level} alpha {alpha:<5g}: target {in_box:4d}/{n_target}  scan kept "
-                  f"{len(out) / len(pts):6.1%}  fog returns {int(fog.sum()):6,} at "
-                  f"{q[0]:.1f} / {q[1]:.1f} / {q[2]:.1f} m (5/50/95 %)")
-    for label, rates in (("benchmark (rain rates)", RAIN_RATE_MM_H),
-                         ("Hahner 0.5-2.5", SNOW_RATE_MM_H_HAHNER)):
+            print(
+                f"    L{level} alpha {alpha:<5g}: target {in_box:4d}/{n_target}  scan kept "
+                f"{len(out) / len(pts):6.1%}  fog returns {int(fog.sum()):6,} at "
+                f"{q[0]:.1f} / {q[1]:.1f} / {q[2]:.1f} m (5/50/95 %)"
+            )
+    for label, rates in (
+        ("benchmark (rain rates)", RAIN_RATE_MM_H),
+        ("Hahner 0.5-2.5", SNOW_RATE_MM_H_HAHNER),
+    ):
         print(f"  snow, {label}:")
         for level, rate in enumerate(rates, start=1):
-            out, _, src = precipitation_rate(pts, inten, np.random.default_rng(0), "snow", rate,
-                                             return_source=True)
+            out, _, src = precipitation_rate(
+                pts, inten, np.random.default_rng(0), "snow", rate, return_source=True
+            )
             r_out = np.linalg.norm(out, axis=1)
             flakes = int((r_out < r_in[src] - 0.5).sum())
             in_box = int(points_in_box(out, box).sum())
-            print(f"    L{level} {rate:<6g} mm/h: target {in_box:4d}/{n_target}  scan kept "
-                  f"{len(out) / len(pts):6.1%}  snowflake returns {flakes:6,}")
+            print(
+                f"    L{level} {rate:<6g} mm/h: target {in_box:4d}/{n_target}  scan kept "
+                f"{len(out) / len(pts):6.1%}  snowflake returns {flakes:6,}"
+            )
 
 
-def bench_benchmark(tracker_name: str, preset: str, counts: list[int],
-                    max_tracklets: int | None = None) -> None:
+def bench_benchmark(
+    tracker_name: str, preset: str, counts: list[int], max_tracklets: int | None = None
+) -> None:
     """Wall and CPU seconds of clean + fog L5 per --num-envs (on the first ``max_tracklets``
     test tracklets if given), extrapolated to the 16 conditions of the whole test split by the
     frame count."""
@@ -174,29 +190,41 @@ def bench_benchmark(tracker_name: str, preset: str, counts: list[int],
     torch.set_num_threads(1)
     base = make_synthetic_env(preset=preset, split="test", setting="kitti-1")
     tracker = load_tracker(tracker_name)
-    subset = None if max_tracklets is None else list(range(min(max_tracklets,
-                                                              base.num_tracklets)))
+    subset = None if max_tracklets is None else list(range(min(max_tracklets, base.num_tracklets)))
     total = sum(base.tracklet_lengths)
-    print(f"{tracker_name}, {preset} test ({base.num_tracklets} tracklets, {total} frames), "
-          f"clean + fog L5 on {len(subset) if subset else base.num_tracklets} tracklets:")
+    print(
+        f"{tracker_name}, {preset} test ({base.num_tracklets} tracklets, {total} frames), "
+        f"clean + fog L5 on {len(subset) if subset else base.num_tracklets} tracklets:"
+    )
     for n in counts:
         wall, cpu = time.perf_counter(), time.process_time()
-        res = run_weather_benchmark(tracker, base.clone, ("fog",), (5,),
-                                    num_envs=n if n > 1 else None, tracklets=subset,
-                                    analysis=False)
+        res = run_weather_benchmark(
+            tracker,
+            base.clone,
+            ("fog",),
+            (5,),
+            num_envs=n if n > 1 else None,
+            tracklets=subset,
+            analysis=False,
+        )
         wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
         frames = res["clean"]["frames"]
         per_frame = cpu / (2 * frames)
-        print(f"  --num-envs {n:>2}: {wall:6.1f} s wall, {cpu:6.1f} s CPU for 2 x {frames} "
-              f"frames = {1e3 * per_frame:.1f} ms CPU/frame -> 16 conditions x {total} frames "
-              f"~{16 * total * per_frame / 60:.1f} min CPU")
+        print(
+            f"  --num-envs {n:>2}: {wall:6.1f} s wall, {cpu:6.1f} s CPU for 2 x {frames} "
+            f"frames = {1e3 * per_frame:.1f} ms CPU/frame -> 16 conditions x {total} frames "
+            f"~{16 * total * per_frame / 60:.1f} min CPU"
+        )
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats and frames")
-    parser.add_argument("--compare", action="store_true",
-                        help="fog rules and snow rates side by side on one synthetic scan")
+    parser.add_argument(
+        "--compare",
+        action="store_true",
+        help="fog rules and snow rates side by side on one synthetic scan",
+    )
     parser.add_argument("--benchmark", metavar="TRACKER", help="time the weather benchmark")
     parser.add_argument("--num-envs", type=int, nargs="+", default=[1, 8, 16])
     parser.add_argument("--preset", default="small")

@@ -1,8 +1,8 @@
 """Box geometry in the LiDAR frame, vectorised over any leading dimensions.
 
-Box convention (DESIGN.md): ``(x, y, z, l, w, h, yaw)`` with ``(x, y, z)`` the geometric centre,
-``l`` along the heading, ``w`` across it, ``h`` up, ``yaw`` about +z counter-clockwise from +x,
-wrapped to ``[-pi, pi)``. The box-local (canonical) frame of a box is reached by translating by
+Box convention (docs/design.md): ``(x, y, z, l, w, h, yaw)`` with ``(x, y, z)`` the geometric
+centre, ``l`` along the heading, ``w`` across it, ``h`` up, ``yaw`` about +z counter-clockwise
+from +x, wrapped to ``[-pi, pi)``. The box-local (canonical) frame of a box is reached by translating by
 ``-centre`` and rotating by ``-yaw``.
 
 All functions take numpy arrays and broadcast their leading dimensions. A few torch twins used by
@@ -132,7 +132,8 @@ def points_in_box(
     """Mask of points ``(..., N, 3+)`` inside boxes ``(..., 7)`` -> bool ``(..., N)``.
 
     The box may be enlarged: half extents become ``scale * size / 2 + offset_m`` on every axis
-    (the search region of DESIGN.md is ``scale=1.25, offset_m=2.0``). Boundary points count as in.
+    (the search region of docs/design.md is ``scale=1.25, offset_m=2.0``). Boundary points count
+    as in.
     """
     boxes = np.asarray(boxes, dtype=np.float64)
     local = world_to_box(np.asarray(points)[..., :3], boxes)
@@ -144,7 +145,7 @@ def apply_offset(ref_boxes: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Move reference boxes ``(..., 7)`` by offsets ``(..., 4)`` = ``(dx, dy, dz, dyaw)``.
 
     The translation is in the reference box's frame: new centre = centre + R(yaw) @ (dx, dy, dz),
-    new yaw = wrap(yaw + dyaw); the size is unchanged (the action convention of DESIGN.md).
+    new yaw = wrap(yaw + dyaw); the size is unchanged (the action convention of docs/design.md).
     """
     ref = np.asarray(ref_boxes, dtype=np.float64)
     off = np.asarray(offsets, dtype=np.float64)

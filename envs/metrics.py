@@ -15,7 +15,8 @@ frame itself unless told the caller already did. Because the AUC is linear in th
 indicators, the score of pooled frames equals the frame-weighted mean of the category scores,
 which is how ``observed`` / ``unseen`` / ``mean`` are reported.
 
-Weather robustness (``003_…`` Sec. III-D): :func:`robustness_metrics` gives the degradation
+Weather robustness (Zhao et al., adverse-weather SOT, Sec. III-D): :func:`robustness_metrics`
+gives the degradation
 rate ``DR = S_weather / S_clean`` per level (Eq. 2), the tables' ``DR`` column (the mean
 degradation ``1 - mean DR``), and the range ``R`` (max - min) and standard deviation ``S.d``
 (sample, ``ddof=1``, which is what Table III's numbers are) of the scores across levels.
@@ -248,7 +249,7 @@ class OPEAccumulator:
 
 
 def robustness_metrics(clean: float, levels: Sequence[float]) -> dict[str, float | list[float]]:
-    """Sec. III-D of ``003_…`` for one score (Success or Precision, percent).
+    """Sec. III-D of Zhao et al. (adverse-weather SOT) for one score (Success or Precision, %).
 
     Returns ``{"dr": [S_j / S_clean per level], "DR": 1 - mean(dr), "R": max - min of the level
     scores, "Sd": sample standard deviation (ddof 1) of the level scores}``. Checked against

@@ -328,8 +328,10 @@ class TrackingEnv(gym.Env):
         self.template_mode = template_mode
         scale, offset_m = (float(v) for v in search_enlargement)
         if not (scale > 0 and offset_m >= 0):
-            raise ValueError(f"search_enlargement must be (scale > 0, offset_m >= 0), got "
-                             f"{tuple(search_enlargement)}")
+            raise ValueError(
+                f"search_enlargement must be (scale > 0, offset_m >= 0), got "
+                f"{tuple(search_enlargement)}"
+            )
         self.search_enlargement = (scale, offset_m)
         self.reference = reference
         self.max_action = a_max
@@ -360,7 +362,9 @@ class TrackingEnv(gym.Env):
             hi = np.array([POINT_BOUND_M] * 3 + [1.0, 1.0], np.float32)
             lo = np.array([-POINT_BOUND_M] * 3 + [0.0, 0.0], np.float32)
             self.observation_space["previous_search"] = spaces.Box(
-                np.tile(lo, (SEARCH_SIZE, 1)), np.tile(hi, (SEARCH_SIZE, 1)), (SEARCH_SIZE, n),
+                np.tile(lo, (SEARCH_SIZE, 1)),
+                np.tile(hi, (SEARCH_SIZE, 1)),
+                (SEARCH_SIZE, n),
                 np.float32,
             )
         self._motion_hi = motion_hi.astype(np.float64).tolist()
@@ -1010,5 +1014,3 @@ def make_kitti_env(
         load = get_setting(setting).categories
     dataset = KittiTracking(root, split, load)
     return TrackingEnv(dataset, setting=setting, categories=categories, split=split, **env_kwargs)
-
-

@@ -25,9 +25,14 @@ def compare(root: str, split: str, categories: list[str]) -> dict[str, float]:
     b = np.concatenate([np.asarray(tr.boxes)[1:] for tr in o3d.tracklets])
     dist = center_distance(a, b)
     dyaw = np.abs(wrap_yaw(a[:, 6] - b[:, 6]))
-    return {"boxes": len(a), "centre_median_m": float(np.median(dist)),
-            "centre_max_m": float(dist.max()), "yaw_median_deg": float(np.degrees(np.median(dyaw))),
-            "success": success_auc(iou_3d(a, b)), "precision": precision_auc(dist)}
+    return {
+        "boxes": len(a),
+        "centre_median_m": float(np.median(dist)),
+        "centre_max_m": float(dist.max()),
+        "yaw_median_deg": float(np.degrees(np.median(dyaw))),
+        "success": success_auc(iou_3d(a, b)),
+        "precision": precision_auc(dist),
+    }
 
 
 def main() -> None:
@@ -41,8 +46,10 @@ def main() -> None:
     for category, categories in [*((c, [c]) for c in four), ("all four", four)]:
         r = compare(args.root, args.split, categories)
         centre = f"{r['centre_median_m']:.3f} / {r['centre_max_m']:.3f}"
-        print(f"{category:10s} {r['boxes']:6d}  {centre:25s}  {r['yaw_median_deg']:16.2f}  "
-              f"{r['success']:7.1f}  {r['precision']:9.1f}")
+        print(
+            f"{category:10s} {r['boxes']:6d}  {centre:25s}  {r['yaw_median_deg']:16.2f}  "
+            f"{r['success']:7.1f}  {r['precision']:9.1f}"
+        )
 
 
 if __name__ == "__main__":

@@ -26,15 +26,19 @@ def compare(root: str, version: str, dump: dict, tol: float = 1e-4) -> dict:
     expected = {t for t, c in dump["categories"].items() if c in CATEGORY_MAP}
     loaded = set(data.instance_tokens)
     if loaded != expected:
-        errors.append(f"instances: {len(loaded - expected)} extra, {len(expected - loaded)} "
-                      f"missing of {len(expected)}")
+        errors.append(
+            f"instances: {len(loaded - expected)} extra, {len(expected - loaded)} "
+            f"missing of {len(expected)}"
+        )
     max_pos = max_yaw = 0.0
     n = 0
-    for tr, inst, anns in zip(data.tracklets, data.instance_tokens, data.annotation_tokens,
-                              strict=True):
+    for tr, inst, anns in zip(
+        data.tracklets, data.instance_tokens, data.annotation_tokens, strict=True
+    ):
         if dump["counts"].get(inst) != len(tr):
-            errors.append(f"instance {inst}: {len(tr)} annotations, devkit "
-                          f"{dump['counts'].get(inst)}")
+            errors.append(
+                f"instance {inst}: {len(tr)} annotations, devkit {dump['counts'].get(inst)}"
+            )
         for box, token in zip(tr.boxes, anns, strict=True):
             ref = dump["boxes"].get(token)
             if ref is None:
@@ -46,8 +50,13 @@ def compare(root: str, version: str, dump: dict, tol: float = 1e-4) -> dict:
             max_pos, max_yaw, n = max(max_pos, pos), max(max_yaw, yaw), n + 1
             if pos > tol or yaw > tol:
                 errors.append(f"annotation {token}: box {box.tolist()} vs devkit {ref.tolist()}")
-    return {"instances": len(loaded), "annotations": n, "max_centre_size_err": max_pos,
-            "max_yaw_err": max_yaw, "errors": errors}
+    return {
+        "instances": len(loaded),
+        "annotations": n,
+        "max_centre_size_err": max_pos,
+        "max_yaw_err": max_yaw,
+        "errors": errors,
+    }
 
 
 def main() -> int:
@@ -62,9 +71,11 @@ def main() -> int:
     report = compare(args.root, args.version, dump, args.tol)
     for line in report["errors"][:20]:
         print("MISMATCH", line)
-    print(f"{report['instances']} instances, {report['annotations']} annotations; max |centre/size"
-          f" diff| {report['max_centre_size_err']:.2e} m, max |yaw diff| "
-          f"{report['max_yaw_err']:.2e} rad; {len(report['errors'])} mismatches (tol {args.tol})")
+    print(
+        f"{report['instances']} instances, {report['annotations']} annotations; max |centre/size"
+        f" diff| {report['max_centre_size_err']:.2e} m, max |yaw diff| "
+        f"{report['max_yaw_err']:.2e} rad; {len(report['errors'])} mismatches (tol {args.tol})"
+    )
     return 1 if report["errors"] else 0
 
 

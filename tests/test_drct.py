@@ -49,8 +49,14 @@ def test_contrast_against_a_hand_computed_case():
     assert got.shape == (1,)
     assert float(got[0]) == pytest.approx(7.0 / 3.0, rel=1e-6)
     # a batch of two: per sample, and the same sample gives the same value
-    two = local_geometric_contrast(key.repeat(2, 1, 1), torch.cat([aux, aux * 0]),
-                                   prim_xyz.repeat(2, 1, 1), prim.repeat(2, 1, 1), 1.0, 2)
+    two = local_geometric_contrast(
+        key.repeat(2, 1, 1),
+        torch.cat([aux, aux * 0]),
+        prim_xyz.repeat(2, 1, 1),
+        prim.repeat(2, 1, 1),
+        1.0,
+        2,
+    )
     want_second = (math.sqrt(1 + 9) * 2 + math.sqrt(4 + 1)) / 3  # zero aux features
     assert two[0] == pytest.approx(7.0 / 3.0, rel=1e-6)
     assert two[1] == pytest.approx(want_second, rel=1e-6)
@@ -82,8 +88,9 @@ def test_branches_start_equal_and_the_tap_leaves_the_backbone_alone():
     model = slim_p2b()
     drct = DRCT(model)
     assert drct.aux is not model
-    for (k, a), (_, b) in zip(drct.aux.state_dict().items(), model.state_dict().items(),
-                              strict=True):
+    for (k, a), (_, b) in zip(
+        drct.aux.state_dict().items(), model.state_dict().items(), strict=True
+    ):
         torch.testing.assert_close(a, b, msg=k)
     # the FFN starts as the identity: on the same clean input both branches agree
     batch, _ = a_batch(2)
@@ -158,9 +165,9 @@ def test_randomized_batch_labels_follow_points():
         half = rb["template"].shape[1] // 2
         c = rt["template_centers"][b].numpy()
         np.testing.assert_array_equal(c[:half], targets["template_centers"][b, :half].numpy())
-        np.testing.assert_array_equal(c[half:],
-                                      np.broadcast_to(targets["template_centers"][b, half],
-                                                      c[half:].shape))
+        np.testing.assert_array_equal(
+            c[half:], np.broadcast_to(targets["template_centers"][b, half], c[half:].shape)
+        )
     again = randomize_batch(batch, targets, np.random.default_rng(0), dr)
     torch.testing.assert_close(again[0]["search"], rb["search"])
     # an empty (all-zero) crop stays empty
@@ -196,8 +203,16 @@ def test_train_drct_export_has_no_auxiliary_branch_and_resumes_exactly(tmp_path)
     from training.pretrain import load_weights, tracker_from_checkpoint, train
 
     def run(out, epochs, resume=False, **kw):
-        cfg = tiny_config(out, epochs=epochs, batch_size=2, iters_per_epoch=2,
-                          model_size="slim", drct=True, weighting="decorrelation", **kw)
+        cfg = tiny_config(
+            out,
+            epochs=epochs,
+            batch_size=2,
+            iters_per_epoch=2,
+            model_size="slim",
+            drct=True,
+            weighting="decorrelation",
+            **kw,
+        )
         return train(cfg, resume=resume, train_data=small_dataset(), val_fn=False)
 
     run(tmp_path / "a", 2)
@@ -257,8 +272,19 @@ def test_cli_flags_set_the_config():
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    cfg = build_config(parser.parse_args(["--drct", "--drct-variant", "siamese", "--weighting",
-                                          "decorrelation", "--set", "drct_neighbours=4"]))
+    cfg = build_config(
+        parser.parse_args(
+            [
+                "--drct",
+                "--drct-variant",
+                "siamese",
+                "--weighting",
+                "decorrelation",
+                "--set",
+                "drct_neighbours=4",
+            ]
+        )
+    )
     assert cfg.drct and cfg.drct_variant == "siamese" and cfg.weighting == "decorrelation"
     assert cfg.drct_neighbours == 4
     assert not build_config(parser.parse_args([])).drct
@@ -271,16 +297,23 @@ def test_drct_with_sam_and_the_rd_control_train(tmp_path):
     from training.pretrain import load_weights, train
 
     start = {k: v.clone() for k, v in slim_p2b().state_dict().items()}
-    for name, kw in (("sam", {"drct": True, "weighting": "sam"}),
-                     ("rd", {"domain_randomize": True})):
-        cfg = tiny_config(tmp_path / name, epochs=1, batch_size=2, iters_per_epoch=1,
-                          model_size="slim", **kw)
-        result = train(cfg, train_data=small_dataset(), val_fn=False,
-                       model_factory=lambda c: slim_p2b())
+    for name, kw in (
+        ("sam", {"drct": True, "weighting": "sam"}),
+        ("rd", {"domain_randomize": True}),
+    ):
+        cfg = tiny_config(
+            tmp_path / name, epochs=1, batch_size=2, iters_per_epoch=1, model_size="slim", **kw
+        )
+        result = train(
+            cfg, train_data=small_dataset(), val_fn=False, model_factory=lambda c: slim_p2b()
+        )
         assert result.steps == 1
         weights, _ = load_weights(tmp_path / name / "last.pt")
-        moved = [k for k in start if start[k].is_floating_point()
-                 and not torch.equal(start[k], weights[k])]
+        moved = [
+            k
+            for k in start
+            if start[k].is_floating_point() and not torch.equal(start[k], weights[k])
+        ]
         assert moved, name
         log = (tmp_path / name / "log.jsonl").read_text()
         assert "NaN" not in log

@@ -82,8 +82,9 @@ def test_category_option_sequential_and_random(toy):
     assert seen == ["Car", "Cyclist", "Car", "Cyclist"]
     rand = TrackingEnv(toy, sampling="random")
     rand.reset(seed=0)
-    cats = [rand.reset(options={"category": ("Pedestrian", "Van")})[1]["category"]
-            for _ in range(40)]
+    cats = [
+        rand.reset(options={"category": ("Pedestrian", "Van")})[1]["category"] for _ in range(40)
+    ]
     assert set(cats) == {"Pedestrian", "Van"}
     with pytest.raises(ValueError, match="valid: \\['Car', 'Cyclist', 'Pedestrian', 'Van'\\]"):
         env.reset(options={"category": "Bus"})

@@ -63,8 +63,9 @@ def check_against_direct_crop(obs, scan, ref, gt_box: bool):
 @pytest.fixture(scope="module")
 def dense():
     """Many points: crops above 1024 points, so resampling draws a subset."""
-    return make_toy_dataset(num_frames=[4, 5], seed=4, num_clutter=60000, target_points=1500,
-                            categories=("Car", "Van"))
+    return make_toy_dataset(
+        num_frames=[4, 5], seed=4, num_clutter=60000, target_points=1500, categories=("Car", "Van")
+    )
 
 
 @pytest.mark.parametrize("fixture", ["sparse", "dense"])
@@ -99,8 +100,9 @@ def test_previous_search_with_a_start_frame_and_the_cell_index(toy):
     for _ in range(3):
         obs, *_ = env.step(far)
         t = env.current_frame
-        check_against_direct_crop(obs["previous_search"], tr.points(t - 1), env.reference_box,
-                                  False)
+        check_against_direct_crop(
+            obs["previous_search"], tr.points(t - 1), env.reference_box, False
+        )
     assert env.cache_stats["cell_index"] > 0
 
 

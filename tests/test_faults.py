@@ -44,8 +44,11 @@ def _one_line_error(capsys, command: str, *needles: str) -> str:
 
 
 def _leftovers(directory: Path) -> list[str]:
-    return sorted(p.name for p in directory.rglob("*")
-                  if ".tmp" in p.name or ".trash-" in p.name or p.name.endswith(".lock"))
+    return sorted(
+        p.name
+        for p in directory.rglob("*")
+        if ".tmp" in p.name or ".trash-" in p.name or p.name.endswith(".lock")
+    )
 
 
 @pytest.fixture(scope="module")
@@ -78,8 +81,22 @@ def test_row2_split_missing_a_scene_is_an_error_unless_allowed(tiny, tmp_path, c
     assert main(["eval", "--root", str(root), "--split", "all", "--no-progress"]) == 2
     _one_line_error(capsys, "eval", "0019", "--allow-missing-scenes")
     with pytest.warns(MissingSceneWarning):
-        assert main(["eval", "--root", str(root), "--split", "all", "--no-progress",
-                     "--allow-missing-scenes", "--max-tracklets", "1"]) == 0
+        assert (
+            main(
+                [
+                    "eval",
+                    "--root",
+                    str(root),
+                    "--split",
+                    "all",
+                    "--no-progress",
+                    "--allow-missing-scenes",
+                    "--max-tracklets",
+                    "1",
+                ]
+            )
+            == 0
+        )
     # without a manifest the KITTI split itself names the scenes
     (root / "manifest.json").unlink()
     with pytest.raises(FileNotFoundError, match="0019, 0020"):
@@ -142,8 +159,16 @@ def _training_checkpoint(path: Path, ema: bool) -> dict[str, torch.Tensor]:
     model = trackers.make("p2b", **cfg.make_kwargs())
     weights = {k: v.clone() for k, v in model.state_dict().items()}
     shadow = {k: v + 1 if v.is_floating_point() else v for k, v in weights.items()}
-    atomic_save({"format": CHECKPOINT_FORMAT, "tracker": "p2b", "config": cfg.to_dict(),
-                 "model": weights, "ema": {"shadow": shadow} if ema else {}}, path)
+    atomic_save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "tracker": "p2b",
+            "config": cfg.to_dict(),
+            "model": weights,
+            "ema": {"shadow": shadow} if ema else {},
+        },
+        path,
+    )
     return shadow if ema else weights
 
 
@@ -156,8 +181,21 @@ def test_row7_training_checkpoint_evaluates_directly(tiny, tmp_path, capsys, ema
     got = load_tracker(str(path)).state_dict()
     assert all(torch.equal(got[k], expected[k]) for k in expected)
     if not ema:
-        assert main(["eval", "--tracker", str(path), "--preset", "tiny", "--max-tracklets", "1",
-                     "--no-progress"]) == 0
+        assert (
+            main(
+                [
+                    "eval",
+                    "--tracker",
+                    str(path),
+                    "--preset",
+                    "tiny",
+                    "--max-tracklets",
+                    "1",
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
         assert "best.pt" in capsys.readouterr().out
 
 
@@ -252,10 +290,22 @@ def test_row15_evaluate_of_no_tracklets_is_refused(tiny):
 
 def test_row16_two_generates_with_different_seeds_into_one_out(tmp_path):
     out = tmp_path / "w"
-    cmd = [sys.executable, "-m", "training.cli", "generate", "--preset", "tiny", "--out", str(out),
-           "--no-progress", "--seed"]
-    procs = [subprocess.Popen(cmd + [str(seed)], env=_env(), stderr=subprocess.PIPE, text=True)
-             for seed in (1, 2)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "training.cli",
+        "generate",
+        "--preset",
+        "tiny",
+        "--out",
+        str(out),
+        "--no-progress",
+        "--seed",
+    ]
+    procs = [
+        subprocess.Popen(cmd + [str(seed)], env=_env(), stderr=subprocess.PIPE, text=True)
+        for seed in (1, 2)
+    ]
     results = [(p.wait(timeout=300), p.stderr.read()) for p in procs]
     codes = sorted(rc for rc, _ in results)
     assert codes == [0, 2], results
@@ -310,8 +360,13 @@ def test_table_columns_in_a_fixed_order():
 
     def report(cats):
         entry = {"success": 1.0, "precision": 2.0, "frames": 3, "observed": True}
-        return {"categories": {c: dict(entry) for c in cats}, "observed": entry,
-                "unseen": entry, "mean": entry, "tracker_fps": 1.0}
+        return {
+            "categories": {c: dict(entry) for c in cats},
+            "observed": entry,
+            "unseen": entry,
+            "mean": entry,
+            "tracker_fps": 1.0,
+        }
 
     a = format_table({"a": report(["Pedestrian", "Car", "Zebra", "Cyclist"])})
     b = format_table({"b": report(["Cyclist", "Zebra", "Car", "Pedestrian"])})
@@ -322,12 +377,14 @@ def test_table_columns_in_a_fixed_order():
 # --------------------------------------------------------------------------- SIGKILL
 
 
-def _kill_after(cmd: list[str], delay_s: float, cwd: Path | None = None,
-                ready: str | None = None) -> int | None:
+def _kill_after(
+    cmd: list[str], delay_s: float, cwd: Path | None = None, ready: str | None = None
+) -> int | None:
     """Start ``cmd``; ``delay_s`` after it prints ``ready`` (or after the start) SIGKILL it.
     Returns its exit code when it finished first, else ``None``."""
-    proc = subprocess.Popen(cmd, env=_env(), cwd=cwd, stdout=subprocess.PIPE,
-                            stderr=subprocess.DEVNULL, text=True)
+    proc = subprocess.Popen(
+        cmd, env=_env(), cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+    )
     if ready is not None:
         for line in proc.stdout:
             if ready in line:
@@ -342,14 +399,31 @@ def _kill_after(cmd: list[str], delay_s: float, cwd: Path | None = None,
 
 def _timed(cmd: list[str], cwd: Path | None = None) -> float:
     t0 = time.perf_counter()
-    subprocess.run(cmd, env=_env(), cwd=cwd, check=True, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL, timeout=600)
+    subprocess.run(
+        cmd,
+        env=_env(),
+        cwd=cwd,
+        check=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        timeout=600,
+    )
     return time.perf_counter() - t0
 
 
 def test_sigkill_generate_leaves_nothing_and_regenerates_identically(tmp_path):
-    gen = [sys.executable, "-m", "training.cli", "generate", "--preset", "tiny", "--seed", "3",
-           "--no-progress", "--out"]
+    gen = [
+        sys.executable,
+        "-m",
+        "training.cli",
+        "generate",
+        "--preset",
+        "tiny",
+        "--seed",
+        "3",
+        "--no-progress",
+        "--out",
+    ]
     reference = tmp_path / "ref"
     full_s = _timed(gen + [str(reference)])
     files = json.loads((reference / "manifest.json").read_text())["files"]
@@ -361,8 +435,14 @@ def test_sigkill_generate_leaves_nothing_and_regenerates_identically(tmp_path):
         _kill_after(gen + [str(out)], delay)
         # never a partial world under the final name
         assert not out.exists() or verify_world(out) == []
-        subprocess.run(gen + [str(out)], env=_env(), check=True, timeout=600,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        subprocess.run(
+            gen + [str(out)],
+            env=_env(),
+            check=True,
+            timeout=600,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         assert json.loads((out / "manifest.json").read_text())["files"] == files
         assert _leftovers(parent) == []
 
@@ -370,14 +450,20 @@ def test_sigkill_generate_leaves_nothing_and_regenerates_identically(tmp_path):
 def test_sigkill_in_the_cache_is_cleaned_on_next_use(tmp_path):
     """A killed ``ensure_world`` leaves a temp directory; the next use of the cache, even of a
     world that exists, removes it."""
-    script = ("import sys; from envs.synthetic import ensure_world; print('ready', flush=True); "
-              "ensure_world('tiny', 'hdl64', 4, cache_dir=sys.argv[1])")
+    script = (
+        "import sys; from envs.synthetic import ensure_world; print('ready', flush=True); "
+        "ensure_world('tiny', 'hdl64', 4, cache_dir=sys.argv[1])"
+    )
     cache = tmp_path / "cache"
     ensure_world("tiny", "hdl64", 0, cache_dir=cache)
     # kill as soon as the writer's temp directory exists: a fixed delay is too early on a loaded
     # machine and too late on an idle one (the tiny world takes a few seconds)
-    proc = subprocess.Popen([sys.executable, "-c", script, str(cache)], env=_env(),
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script, str(cache)],
+        env=_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.monotonic() + 300
     while not _leftovers(cache) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
@@ -416,8 +502,12 @@ def test_sigkill_train_resumes_exactly(tmp_path, weighting):
     script.write_text(TRAIN_SCRIPT)
     full = tmp_path / "full"
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, str(script), str(full), "0", weighting], env=_env(),
-                            stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(full), "0", weighting],
+        env=_env(),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     for line in proc.stdout:
         if "ready" in line:
             t0 = time.perf_counter()
@@ -430,8 +520,13 @@ def test_sigkill_train_resumes_exactly(tmp_path, weighting):
         delay = random.Random(seed).uniform(0.05, 0.95) * train_s
         _kill_after([sys.executable, str(script), str(run), "0", weighting], delay, ready="ready")
         resume = "1" if (run / "config.yaml").exists() else "0"
-        subprocess.run([sys.executable, str(script), str(run), resume, weighting], env=_env(),
-                       check=True, timeout=600, stdout=subprocess.DEVNULL)
+        subprocess.run(
+            [sys.executable, str(script), str(run), resume, weighting],
+            env=_env(),
+            check=True,
+            timeout=600,
+            stdout=subprocess.DEVNULL,
+        )
         got = torch.load(run / "last.pt", weights_only=True)
         for key in reference["model"]:
             assert torch.equal(got["model"][key], reference["model"][key]), (seed, key)
@@ -443,8 +538,22 @@ def test_sigkill_train_resumes_exactly(tmp_path, weighting):
 
 
 def test_sigkill_select_never_reads_a_partial_report(tiny, tmp_path):
-    cmd = [sys.executable, "-m", "training.cli", "select", "previous_box", "constant_velocity",
-           "--preset", "tiny", "--parts", "0:val", "--num-envs", "1", "--no-progress", "--out"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "training.cli",
+        "select",
+        "previous_box",
+        "constant_velocity",
+        "--preset",
+        "tiny",
+        "--parts",
+        "0:val",
+        "--num-envs",
+        "1",
+        "--no-progress",
+        "--out",
+    ]
     reference = tmp_path / "ref"
     full_s = _timed(cmd + [str(reference)])
     expected = json.loads((reference / "selection.json").read_text())["ranking"]
@@ -453,8 +562,14 @@ def test_sigkill_select_never_reads_a_partial_report(tiny, tmp_path):
         _kill_after(cmd + [str(out)], random.Random(seed).uniform(0.3, 0.95) * full_s)
         for cached in (out / "parts").rglob("*.json") if out.exists() else []:
             json.loads(cached.read_text())  # every report on disk is complete
-        subprocess.run(cmd + [str(out)], env=_env(), check=True, timeout=600,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        subprocess.run(
+            cmd + [str(out)],
+            env=_env(),
+            check=True,
+            timeout=600,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         assert json.loads((out / "selection.json").read_text())["ranking"] == expected
         assert _leftovers(out) == []
 
@@ -463,9 +578,13 @@ def test_resume_truncates_the_log_to_the_checkpoint(tmp_path):
     from training.checkpoint import truncate_log
 
     log = tmp_path / "log.jsonl"
-    records = [{"kind": "data", "step": 0}, {"kind": "train", "step": 10},
-               {"kind": "epoch", "step": 16}, {"kind": "data", "step": 16},
-               {"kind": "train", "step": 20}]
+    records = [
+        {"kind": "data", "step": 0},
+        {"kind": "train", "step": 10},
+        {"kind": "epoch", "step": 16},
+        {"kind": "data", "step": 16},
+        {"kind": "train", "step": 20},
+    ]
     log.write_text("".join(json.dumps(r) + "\n" for r in records) + '{"kind": "tra')
     assert truncate_log(log, 16) == 3
     assert [json.loads(x) for x in log.read_text().splitlines()] == records[:3]

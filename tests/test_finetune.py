@@ -34,14 +34,28 @@ def data():
 
 
 def tiny_cfg(**kwargs) -> ft.FinetuneConfig:
-    base = {"tracker": "p2b-kitti1-u", "timesteps": 32, "num_envs": 2, "n_steps": 4,
-            "batch_size": 8, "n_epochs": 1, "clip_length": 4, "warmup_rollouts": 1}
+    base = {
+        "tracker": "p2b-kitti1-u",
+        "timesteps": 32,
+        "num_envs": 2,
+        "n_steps": 4,
+        "batch_size": 8,
+        "n_epochs": 1,
+        "clip_length": 4,
+        "warmup_rollouts": 1,
+    }
     return ft.FinetuneConfig(**{**base, **kwargs})
 
 
 def run(cfg, out, data, **kwargs):
-    return ft.finetune(cfg, out, make_env=lambda: TrackingEnv(data, sampling="random"),
-                       progress=False, log=lambda *_: None, **kwargs)
+    return ft.finetune(
+        cfg,
+        out,
+        make_env=lambda: TrackingEnv(data, sampling="random"),
+        progress=False,
+        log=lambda *_: None,
+        **kwargs,
+    )
 
 
 def log_steps(out: Path) -> list[int]:
@@ -61,9 +75,13 @@ def test_ppo_run_writes_an_ordinary_tracker_checkpoint(tmp_path, data):
     assert records[0]["approx_kl"] == 0.0  # warm-up: the actor did not move
     assert all(0.0 <= r["iou"] <= 1.0 and r["steps_per_s"] > 0 for r in records)
     assert sorted(p.name for p in (out / "snapshots").iterdir()) == [
-        "tracker-00000016.safetensors", "tracker-00000032.safetensors"]
-    torch.testing.assert_close(trackers.load(out / "snapshots/tracker-00000032.safetensors")
-                               .state_dict(), tuned.state_dict())
+        "tracker-00000016.safetensors",
+        "tracker-00000032.safetensors",
+    ]
+    torch.testing.assert_close(
+        trackers.load(out / "snapshots/tracker-00000032.safetensors").state_dict(),
+        tuned.state_dict(),
+    )
     _, _, _, meta = ft.load_state(out / "state.safetensors")
     assert meta["finished"] and meta["timesteps"] == 32
 
@@ -73,9 +91,12 @@ def test_out_dir_refusals_name_the_problem(tmp_path, data):
     run(tiny_cfg(timesteps=8), out, data)
     with pytest.raises(ft.FinetuneError, match="holds a finished run.*--resume.*--overwrite"):
         run(tiny_cfg(timesteps=8), out, data)
-    with pytest.raises(ft.FinetuneError, match=r"another tracker or config \(gamma: saved 0.9, "
-                                               r"given 0.5; tracker: saved 'p2b-kitti1-u', "
-                                               r"given 'bat-kitti1-u'"):
+    with pytest.raises(
+        ft.FinetuneError,
+        match=r"another tracker or config \(gamma: saved 0.9, "
+        r"given 0.5; tracker: saved 'p2b-kitti1-u', "
+        r"given 'bat-kitti1-u'",
+    ):
         run(tiny_cfg(timesteps=16, gamma=0.5, tracker="bat-kitti1-u"), out, data, resume=True)
     with pytest.raises(ft.FinetuneError, match="nothing to resume"):
         run(tiny_cfg(), tmp_path / "empty", data, resume=True)
@@ -96,6 +117,7 @@ def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch
         original(self)
         if self.updates == 2:
             raise KeyboardInterrupt  # a kill right after the second checkpoint
+
     monkeypatch.setattr(ft._PPORun, "after_update", stop_after_two)
     with pytest.raises(KeyboardInterrupt):
         run(tiny_cfg(), out, data)
@@ -109,8 +131,9 @@ def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch
     result = run(tiny_cfg(), out, data, resume=True)
     assert result.timesteps == 32 and result.updates == 4
     assert log_steps(out) == [8, 16, 24, 32]
-    assert optim_sd["state"] and all(torch.isfinite(t).all() for e in optim_sd["state"].values()
-                                     for t in e.values())
+    assert optim_sd["state"] and all(
+        torch.isfinite(t).all() for e in optim_sd["state"].values() for t in e.values()
+    )
     assert set(policy_sd) == set(ft.load_state(out / "state.safetensors")[0])
     trackers.load(out / "tracker.safetensors")
 
@@ -119,8 +142,14 @@ def test_state_round_trips_policy_and_optimizer(tmp_path, data):
     out = tmp_path / "run"
     run(tiny_cfg(timesteps=16), out, data)
     cfg = tiny_cfg(timesteps=16)
-    r = ft._PPORun(cfg, out, lambda: TrackingEnv(data, sampling="random"),
-                   ft._read_meta(out / "state.safetensors"), False, print)
+    r = ft._PPORun(
+        cfg,
+        out,
+        lambda: TrackingEnv(data, sampling="random"),
+        ft._read_meta(out / "state.safetensors"),
+        False,
+        print,
+    )
     policy_sd, optim_sd, _, _ = ft.load_state(out / "state.safetensors")
     for k, v in r.policy.state_dict().items():
         assert torch.equal(v, policy_sd[k]), k
@@ -145,13 +174,19 @@ class NanAfter(gym.Wrapper):
         return obs, (float("nan") if self.n > self.k else reward), term, trunc, info
 
 
-def test_nan_in_a_rollout_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path,
-                                                                                       data):
+def test_nan_in_a_rollout_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path, data):
     out = tmp_path / "run"
-    with pytest.raises(ft.NonFiniteError, match=r"non-finite rewards of the rollout at step 24 "
-                                                r"\(update 2\).*last good checkpoint \(step 16\)"):
-        ft.finetune(tiny_cfg(), out, progress=False,
-                    make_env=lambda: NanAfter(TrackingEnv(data, sampling="random"), 10))
+    with pytest.raises(
+        ft.NonFiniteError,
+        match=r"non-finite rewards of the rollout at step 24 "
+        r"\(update 2\).*last good checkpoint \(step 16\)",
+    ):
+        ft.finetune(
+            tiny_cfg(),
+            out,
+            progress=False,
+            make_env=lambda: NanAfter(TrackingEnv(data, sampling="random"), 10),
+        )
     _, _, _, meta = ft.load_state(out / "state.safetensors")
     assert meta["timesteps"] == 16 and not meta["finished"]
     assert not (out / "tracker.safetensors").exists()
@@ -218,8 +253,10 @@ def test_cli_bad_flags_are_one_line_errors(tmp_path, capsys):
         main(["finetune", "--val-max-tracklets", "0", "--out", str(tmp_path / "x")])
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
-    assert err == ("pointtrack finetune: --val-max-tracklets must be >= 1, got 0 (use --no-val "
-                   "to skip the val check)")
+    assert err == (
+        "pointtrack finetune: --val-max-tracklets must be >= 1, got 0 (use --no-val "
+        "to skip the val check)"
+    )
     with pytest.raises(SystemExit) as exc:
         main(["finetune", "--algo", "sac", "--out", str(tmp_path / "x")])
     assert exc.value.code == 2
@@ -232,29 +269,71 @@ def test_cli_bad_flags_are_one_line_errors(tmp_path, capsys):
     assert not (tmp_path / "x").exists()
 
 
-TINY_RUN = ["finetune", "--tracker", "p2b-kitti1-u", "--preset", "tiny", "--num-envs", "2",
-            "--n-steps", "4", "--batch-size", "8", "--n-epochs", "1", "--clip-length", "4",
-            "--no-progress"]
+TINY_RUN = [
+    "finetune",
+    "--tracker",
+    "p2b-kitti1-u",
+    "--preset",
+    "tiny",
+    "--num-envs",
+    "2",
+    "--n-steps",
+    "4",
+    "--batch-size",
+    "8",
+    "--n-epochs",
+    "1",
+    "--clip-length",
+    "4",
+    "--no-progress",
+]
 
 
 def test_cli_end_to_end_result_loads_and_evaluates(tmp_path, capsys):
     out = tmp_path / "ft"
-    assert main([*TINY_RUN, "--timesteps", "16", "--val-max-tracklets", "1",
-                 "--out", str(out)]) == 0
+    assert (
+        main([*TINY_RUN, "--timesteps", "16", "--val-max-tracklets", "1", "--out", str(out)]) == 0
+    )
     text = capsys.readouterr().out
     assert "base: val success" in text and "finetuned: val success" in text
     assert json.loads((out / "val.json").read_text())["tracklets"] == 1
     trackers.load(out / "tracker.safetensors")
-    assert main(["eval", "--tracker", str(out / "tracker.safetensors"), "--preset", "tiny",
-                 "--max-tracklets", "1", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--tracker",
+                str(out / "tracker.safetensors"),
+                "--preset",
+                "tiny",
+                "--max-tracklets",
+                "1",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "tracker.safetensors" in capsys.readouterr().out
     # --resume --out DIR alone takes DIR's config; a flag that changes it is refused by name
     with pytest.raises(SystemExit) as exc:
         main(["finetune", "--resume", "--out", str(out), "--gamma", "0.5", "--timesteps", "24"])
     assert exc.value.code == 2
     assert "(gamma: saved 0.9, given 0.5)" in capsys.readouterr().err
-    assert main(["finetune", "--resume", "--out", str(out), "--timesteps", "24", "--no-val",
-                 "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "finetune",
+                "--resume",
+                "--out",
+                str(out),
+                "--timesteps",
+                "24",
+                "--no-val",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert log_steps(out) == [8, 16, 24]
 
 
@@ -264,11 +343,21 @@ def test_sigkill_and_resume_through_the_cli(tmp_path):
 
     ensure_world(preset="tiny")  # in this run's cache, shared with the child through the env
     out = tmp_path / "ft"
-    args = [sys.executable, "-m", "training.cli", *TINY_RUN, "--timesteps", "64", "--no-val",
-            "--out", str(out)]
+    args = [
+        sys.executable,
+        "-m",
+        "training.cli",
+        *TINY_RUN,
+        "--timesteps",
+        "64",
+        "--no-val",
+        "--out",
+        str(out),
+    ]
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    child = subprocess.Popen(args, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
-                             stderr=subprocess.PIPE)
+    child = subprocess.Popen(
+        args, cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE
+    )
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and child.poll() is None:
         state = out / "state.safetensors"
@@ -280,8 +369,7 @@ def test_sigkill_and_resume_through_the_cli(tmp_path):
     child.wait()
     killed_at = ft._read_meta(out / "state.safetensors")["timesteps"]
     assert killed_at < 64 and not (out / "tracker.safetensors").exists()
-    done = subprocess.run([*args, "--resume"], cwd=REPO, env=env, capture_output=True,
-                          timeout=300)
+    done = subprocess.run([*args, "--resume"], cwd=REPO, env=env, capture_output=True, timeout=300)
     assert done.returncode == 0, done.stderr.decode()
     steps = log_steps(out)
     assert steps == sorted(set(steps)) and steps[-1] == 64 and steps[0] == 8

@@ -347,11 +347,13 @@ def test_scalar_box_offsets_equal_the_vectorised_ones():
         [rng.normal(0, 5, (50, 3)), rng.uniform(1, 4, (50, 3)), rng.uniform(-3.2, 3.2, 50)]
     )
     off = np.column_stack([rng.normal(0, 1, (50, 3)), rng.uniform(-4, 4, 50)])
-    moved = np.array([apply_offset_pair(r, o) for r, o in zip(ref.tolist(), off.tolist(),
-                                                              strict=True)])
+    moved = np.array(
+        [apply_offset_pair(r, o) for r, o in zip(ref.tolist(), off.tolist(), strict=True)]
+    )
     np.testing.assert_allclose(moved, apply_offset(ref, off), rtol=0, atol=1e-12)
-    back = np.array([offset_between_pair(r, m) for r, m in zip(ref.tolist(), moved.tolist(),
-                                                               strict=True)])
+    back = np.array(
+        [offset_between_pair(r, m) for r, m in zip(ref.tolist(), moved.tolist(), strict=True)]
+    )
     np.testing.assert_allclose(back, offset_between(ref, moved), rtol=0, atol=1e-12)
 
 

@@ -43,8 +43,17 @@ def _lidar_box(row: list[str], r0: np.ndarray, tr: np.ndarray) -> np.ndarray:
     bottom = to_velo @ np.array([x, y, z, 1.0])
     tip = to_velo @ np.array([x + math.cos(ry), y, z - math.sin(ry), 1.0])
     heading = tip[:3] - bottom[:3]
-    return np.array([bottom[0], bottom[1], bottom[2] + h / 2, length, w, h,
-                     _wrap(math.atan2(heading[1], heading[0]))])
+    return np.array(
+        [
+            bottom[0],
+            bottom[1],
+            bottom[2] + h / 2,
+            length,
+            w,
+            h,
+            _wrap(math.atan2(heading[1], heading[0])),
+        ]
+    )
 
 
 def _open3dsot_box(row: list[str], tr: np.ndarray) -> np.ndarray:
@@ -76,8 +85,10 @@ CASES = [("0019", "Car"), ("0016", "Pedestrian"), ("0002", "Cyclist"), ("0020", 
 def both(shared_labels):
     """Both conventions' loaders of every split with the four categories."""
     cats = [c for _, c in CASES]
-    return (KittiTracking(shared_labels, "all", cats),
-            KittiTracking(shared_labels, "all", cats, box_convention="open3dsot"))
+    return (
+        KittiTracking(shared_labels, "all", cats),
+        KittiTracking(shared_labels, "all", cats, box_convention="open3dsot"),
+    )
 
 
 @pytest.mark.parametrize("scene, category", CASES)
@@ -105,6 +116,7 @@ def test_open3dsot_yaw_is_minus_ry_minus_half_pi(shared_labels, both):
 
 
 def test_box_convention_accepts_only_its_two_values(tmp_path):
-    with pytest.raises(ValueError, match="box_convention must be one of lidar, open3dsot; got "
-                                         "'camera'"):
+    with pytest.raises(
+        ValueError, match="box_convention must be one of lidar, open3dsot; got 'camera'"
+    ):
         KittiTracking(tmp_path, "all", box_convention="camera")

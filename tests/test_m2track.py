@@ -24,8 +24,13 @@ from trackers.m2track import (
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 SLIM = trackers.size_config("m2track", "slim")
-TINY = {"seg_channels": [8, 8, 16], "seg_head_channels": [16, 8], "point_channels": [8, 16],
-        "hidden_channels": [16], "head_channels": [8]}
+TINY = {
+    "seg_channels": [8, 8, 16],
+    "seg_head_channels": [16, 8],
+    "point_channels": [8, 16],
+    "hidden_channels": [16],
+    "head_channels": [8],
+}
 
 
 def _clouds(b: int, n: int = 128, seed: int = 0) -> dict[str, torch.Tensor]:
@@ -40,8 +45,12 @@ def _clouds(b: int, n: int = 128, seed: int = 0) -> dict[str, torch.Tensor]:
         return torch.cat([target, ground], dim=1)
 
     move = torch.cat([0.5 * torch.randn(b, 2, generator=g), torch.zeros(b, 1)], dim=1)
-    return {"previous_search": frame(torch.zeros(b, 3)), "search": frame(move), "size": size,
-            "prior_is_gt": torch.tensor([1.0, 0.0] * (b // 2) + [1.0] * (b % 2))}
+    return {
+        "previous_search": frame(torch.zeros(b, 3)),
+        "search": frame(move),
+        "size": size,
+        "prior_is_gt": torch.tensor([1.0, 0.0] * (b // 2) + [1.0] * (b % 2)),
+    }
 
 
 def _targets(batch: dict[str, torch.Tensor], seed: int = 0) -> dict[str, torch.Tensor]:
@@ -50,10 +59,15 @@ def _targets(batch: dict[str, torch.Tensor], seed: int = 0) -> dict[str, torch.T
     labels = torch.zeros(b, batch["search"].shape[1] + batch["previous_search"].shape[1])
     n = batch["previous_search"].shape[1]
     labels[:, : n // 2] = 1
-    labels[:, n: n + batch["search"].shape[1] // 2] = 1
+    labels[:, n : n + batch["search"].shape[1] // 2] = 1
     box = 0.3 * torch.randn(b, 4, generator=g)
-    return {"seg_labels": labels, "box": box, "prev_box": 0.05 * torch.randn(b, 4, generator=g),
-            "motion_box": box, "moving": (torch.arange(b) % 2).float()}
+    return {
+        "seg_labels": labels,
+        "box": box,
+        "prev_box": 0.05 * torch.randn(b, 4, generator=g),
+        "motion_box": box,
+        "moving": (torch.arange(b) % 2).float(),
+    }
 
 
 def _obs(b: int | None, seed: int = 0, channels: int = 3) -> dict[str, np.ndarray]:
@@ -61,9 +75,13 @@ def _obs(b: int | None, seed: int = 0, channels: int = 3) -> dict[str, np.ndarra
     prev = batch["previous_search"].numpy()
     if channels > 3:
         prev = np.concatenate([prev, np.ones(prev.shape[:-1] + (channels - 3,), np.float32)], -1)
-    obs = {"search": batch["search"].numpy(), "previous_search": prev,
-           "size": batch["size"].numpy(), "motion": np.zeros((len(prev), 4), np.float32),
-           "template": np.zeros((len(prev), 512, 3), np.float32)}
+    obs = {
+        "search": batch["search"].numpy(),
+        "previous_search": prev,
+        "size": batch["size"].numpy(),
+        "motion": np.zeros((len(prev), 4), np.float32),
+        "template": np.zeros((len(prev), 512, 3), np.float32),
+    }
     return {k: v[0] for k, v in obs.items()} if b is None else obs
 
 
@@ -82,8 +100,12 @@ def test_registered_with_sizes_and_samples():
             trackers.make("m2track", seg_channels=bad)
     with pytest.raises(ValueError, match="box_aware"):
         trackers.make("m2track", loss_weights={"box_cloud": 2.0})
-    assert trackers.make("m2track", **TINY, box_aware=True,
-                         loss_weights={"box_cloud": 2.0}).config.loss_weights["box_cloud"] == 2.0
+    assert (
+        trackers.make(
+            "m2track", **TINY, box_aware=True, loss_weights={"box_cloud": 2.0}
+        ).config.loss_weights["box_cloud"]
+        == 2.0
+    )
     with pytest.raises(ValueError, match="unknown loss term"):
         trackers.make("m2track", loss_weights={"vote": 1.0})
 
@@ -94,9 +116,17 @@ def test_forward_shapes_and_finite_in_train_and_eval():
     for train in (True, False):
         model.train(train)
         out = model(batch)
-        shapes = {"seg_logits": (3, 256, 2), "motion": (3, 4), "motion_logits": (3, 2),
-                  "prev_box": (3, 4), "aux_box": (3, 4), "box": (3, 4), "feature": (3, 16),
-                  "proposals": (3, 1, 4), "scores": (3, 1)}
+        shapes = {
+            "seg_logits": (3, 256, 2),
+            "motion": (3, 4),
+            "motion_logits": (3, 2),
+            "prev_box": (3, 4),
+            "aux_box": (3, 4),
+            "box": (3, 4),
+            "feature": (3, 16),
+            "proposals": (3, 1, 4),
+            "scores": (3, 1),
+        }
         for key, shape in shapes.items():
             assert tuple(out[key].shape) == shape, key
             assert torch.isfinite(out[key]).all(), key
@@ -105,8 +135,9 @@ def test_forward_shapes_and_finite_in_train_and_eval():
 
 def test_motion_cloud_channels_match_a_direct_computation():
     batch = _clouds(2, n=64)
-    cloud = motion_cloud(batch["previous_search"], batch["search"], batch["size"],
-                         batch["prior_is_gt"])
+    cloud = motion_cloud(
+        batch["previous_search"], batch["search"], batch["size"], batch["prior_is_gt"]
+    )
     assert cloud.shape == (2, 128, 5)
     for i, (low, high) in enumerate([(0.0, 1.0), (0.2, 0.8)]):  # prior_is_gt = 1, then 0
         prev = batch["previous_search"][i].numpy()
@@ -114,8 +145,7 @@ def test_motion_cloud_channels_match_a_direct_computation():
         inside = points_in_box(prev, box, 1.25)
         assert inside.any() and not inside.all()
         np.testing.assert_allclose(cloud[i, :64, 4].numpy(), np.where(inside, high, low))
-        assert (cloud[i, :64, 3] == 0).all() and torch.allclose(cloud[i, 64:, 3],
-                                                               torch.tensor(0.1))
+        assert (cloud[i, :64, 3] == 0).all() and torch.allclose(cloud[i, 64:, 3], torch.tensor(0.1))
         assert (cloud[i, 64:, 4] == 0.5).all()
         assert torch.equal(cloud[i, :64, :3], batch["previous_search"][i])
 
@@ -180,22 +210,37 @@ def test_losses_are_the_published_batch_losses_per_sample():
     out = model(batch)
     terms = model.loss(out, targets)
     assert all(v.shape == (4,) for v in terms.values())
-    seg = F.cross_entropy(out["seg_logits"].transpose(1, 2), targets["seg_labels"].long(),
-                          weight=torch.tensor([0.5, 2.0]))
+    seg = F.cross_entropy(
+        out["seg_logits"].transpose(1, 2),
+        targets["seg_labels"].long(),
+        weight=torch.tensor([0.5, 2.0]),
+    )
     torch.testing.assert_close(terms["seg"].mean(), seg)
     moving = targets["moving"]
-    center = F.smooth_l1_loss(out["motion"][:, :3], targets["motion_box"][:, :3],
-                              reduction="none").mean(1)
-    torch.testing.assert_close(terms["center_motion"].mean(),
-                               (moving * center).sum() / (moving.sum() + 1e-6))
+    center = F.smooth_l1_loss(
+        out["motion"][:, :3], targets["motion_box"][:, :3], reduction="none"
+    ).mean(1)
+    torch.testing.assert_close(
+        terms["center_motion"].mean(), (moving * center).sum() / (moving.sum() + 1e-6)
+    )
     angle = F.smooth_l1_loss(torch.sin(out["box"][:, 3]), torch.sin(targets["box"][:, 3]))
     torch.testing.assert_close(terms["angle"].mean(), angle)
-    torch.testing.assert_close(terms["motion_state"].mean(),
-                               F.cross_entropy(out["motion_logits"], moving.long()))
+    torch.testing.assert_close(
+        terms["motion_state"].mean(), F.cross_entropy(out["motion_logits"], moving.long())
+    )
     w = model.config.loss_weights
-    assert w == {"seg": 0.1, "motion_state": 0.1, "center_motion": 2.0, "angle_motion": 10.0,
-                 "center_prev": 2.0, "angle_prev": 10.0, "center_aux": 2.0, "angle_aux": 10.0,
-                 "center": 2.0, "angle": 10.0}
+    assert w == {
+        "seg": 0.1,
+        "motion_state": 0.1,
+        "center_motion": 2.0,
+        "angle_motion": 10.0,
+        "center_prev": 2.0,
+        "angle_prev": 10.0,
+        "center_aux": 2.0,
+        "angle_aux": 10.0,
+        "center": 2.0,
+        "angle": 10.0,
+    }
     torch.testing.assert_close(terms["total"], sum(w[k] * terms[k] for k in w))
     with pytest.raises(KeyError, match="moving"):
         model.loss(out, {k: v for k, v in targets.items() if k != "moving"})
@@ -291,9 +336,21 @@ def test_box_cloud_matches_the_corner_distances():
     for i in range(2):
         box7 = np.array([*boxes[i, :3].tolist(), *size[i].tolist(), float(boxes[i, 3])])
         l, w, h = size[i].tolist()
-        corners = np.array([[sx * l / 2, sy * w / 2, sz * h / 2] for sx, sy, sz in
-                            [(1, 1, 1), (1, -1, 1), (1, -1, -1), (1, 1, -1),
-                             (-1, 1, 1), (-1, -1, 1), (-1, -1, -1), (-1, 1, -1)]])
+        corners = np.array(
+            [
+                [sx * l / 2, sy * w / 2, sz * h / 2]
+                for sx, sy, sz in [
+                    (1, 1, 1),
+                    (1, -1, 1),
+                    (1, -1, -1),
+                    (1, 1, -1),
+                    (-1, 1, 1),
+                    (-1, -1, 1),
+                    (-1, -1, -1),
+                    (-1, 1, -1),
+                ]
+            ]
+        )
         keypoints = box_to_world(np.vstack([np.zeros(3), corners]), box7)
         expect = np.linalg.norm(pts[i].numpy()[:, None] - keypoints[None], axis=-1)
         np.testing.assert_allclose(got[i].numpy(), expect, atol=1e-5)
@@ -305,17 +362,24 @@ def test_box_aware_variant_trains_acts_and_round_trips(tmp_path):
     assert "box_cloud" in model.config.loss_weights
     assert "box_cloud" not in plain.config.loss_weights
     batch = _clouds(2, n=64)
-    cloud = motion_cloud(batch["previous_search"], batch["search"], batch["size"],
-                         batch["prior_is_gt"], box_aware=True)
+    cloud = motion_cloud(
+        batch["previous_search"],
+        batch["search"],
+        batch["size"],
+        batch["prior_is_gt"],
+        box_aware=True,
+    )
     assert cloud.shape == (2, 128, 14) and (cloud[:, 64:, 5:] == 0).all()
-    torch.testing.assert_close(cloud[:, :64, 5:], box_cloud(
-        batch["previous_search"], torch.zeros(2, 4), batch["size"]))
+    torch.testing.assert_close(
+        cloud[:, :64, 5:], box_cloud(batch["previous_search"], torch.zeros(2, 4), batch["size"])
+    )
     out = model(batch)
     assert out["box_cloud"].shape == (2, 128, 9)
     targets = {**_targets(batch), "box_cloud": torch.rand(2, 128, 9)}
     terms = model.loss(out, targets)
-    torch.testing.assert_close(terms["box_cloud"].mean(),
-                               F.smooth_l1_loss(out["box_cloud"], targets["box_cloud"]))
+    torch.testing.assert_close(
+        terms["box_cloud"].mean(), F.smooth_l1_loss(out["box_cloud"], targets["box_cloud"])
+    )
     with pytest.raises(KeyError, match="box_cloud"):
         model.loss(out, _targets(batch))
     model.eval()

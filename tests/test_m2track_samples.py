@@ -39,9 +39,18 @@ def test_samples_shapes_determinism_and_epochs():
     data = MotionSamples(fake_tracklets(n=2, frames=5), candidates_per_frame=2, seed=3)
     assert len(data) == 2 * 4 * 2
     s = data[5]
-    shapes = {"search": (1024, 3), "previous_search": (1024, 3), "size": (3,), "prior_is_gt": (),
-              "seg_labels": (2048,), "box": (4,), "prev_box": (4,), "motion_box": (4,),
-              "moving": (), "box_cloud": (2048, 9)}
+    shapes = {
+        "search": (1024, 3),
+        "previous_search": (1024, 3),
+        "size": (3,),
+        "prior_is_gt": (),
+        "seg_labels": (2048,),
+        "box": (4,),
+        "prev_box": (4,),
+        "motion_box": (4,),
+        "moving": (),
+        "box_cloud": (2048, 9),
+    }
     assert set(shapes) == set(BATCH_KEYS) | set(TARGET_KEYS)
     for key, shape in shapes.items():
         assert tuple(s[key].shape) == shape and torch.isfinite(s[key]).all(), key
@@ -53,8 +62,9 @@ def test_samples_shapes_determinism_and_epochs():
 
 
 def test_unaugmented_samples_are_crops_of_the_scans_with_consistent_labels():
-    data = MotionSamples(fake_tracklets(n=2, frames=5), candidates_per_frame=3, seed=1,
-                         augment=False)
+    data = MotionSamples(
+        fake_tracklets(n=2, frames=5), candidates_per_frame=3, seed=1, augment=False
+    )
     shifts = []
     for index in range(len(data)):
         s = {k: v.numpy() for k, v in data[index].items()}
@@ -63,8 +73,7 @@ def test_unaugmented_samples_are_crops_of_the_scans_with_consistent_labels():
         prev_gt, gt, size0 = tr.boxes[t - 1], tr.boxes[t], tr.boxes[0][3:6]
         ref = _reference(gt[[0, 1, 2, 6]], s["box"].astype(np.float64), size0)
         # the previous box, seen from the same reference box
-        ref_from_prev = _reference(prev_gt[[0, 1, 2, 6]], s["prev_box"].astype(np.float64),
-                                   size0)
+        ref_from_prev = _reference(prev_gt[[0, 1, 2, 6]], s["prev_box"].astype(np.float64), size0)
         np.testing.assert_allclose(ref, ref_from_prev, atol=1e-4)
         shift = world_to_box(ref[None, :3], np.r_[prev_gt[:3], size0, prev_gt[6]])[0]
         shifts.append(np.abs(shift[:2]).max())
@@ -78,10 +87,12 @@ def test_unaugmented_samples_are_crops_of_the_scans_with_consistent_labels():
         # labels: inside the ground truth scaled 1.25, in each frame
         prev_box = np.r_[s["prev_box"][:3], prev_gt[3:6], s["prev_box"][3]]
         box = np.r_[s["box"][:3], gt[3:6], s["box"][3]]
-        np.testing.assert_array_equal(s["seg_labels"][:1024] > 0,
-                                      points_in_box(s["previous_search"], prev_box, 1.25))
-        np.testing.assert_array_equal(s["seg_labels"][1024:] > 0,
-                                      points_in_box(s["search"], box, 1.25))
+        np.testing.assert_array_equal(
+            s["seg_labels"][:1024] > 0, points_in_box(s["previous_search"], prev_box, 1.25)
+        )
+        np.testing.assert_array_equal(
+            s["seg_labels"][1024:] > 0, points_in_box(s["search"], box, 1.25)
+        )
         # the motion moves the previous box onto the current one
         np.testing.assert_allclose(s["motion_box"], offset_between(prev_gt, gt), atol=1e-5)
         moved = apply_offset(prev_box, s["motion_box"].astype(np.float64))
@@ -91,8 +102,9 @@ def test_unaugmented_samples_are_crops_of_the_scans_with_consistent_labels():
         # corner distance is at least half the box diagonal
         centres = np.r_[np.repeat(prev_box[None, :3], 1024, 0), np.repeat(box[None, :3], 1024, 0)]
         points = np.r_[s["previous_search"], s["search"]]
-        np.testing.assert_allclose(s["box_cloud"][:, 0], np.linalg.norm(points - centres, axis=1),
-                                   atol=1e-4)
+        np.testing.assert_allclose(
+            s["box_cloud"][:, 0], np.linalg.norm(points - centres, axis=1), atol=1e-4
+        )
         assert (s["box_cloud"][1024:, 1:].max(1) >= 0.5 * np.linalg.norm(gt[3:6]) - 1e-4).all()
     assert max(shifts) > 0.05
 
@@ -151,10 +163,20 @@ def test_m2track_acts_on_the_env_previous_search_key(tiny_world):
 def test_trainer_runs_a_tiny_m2track_epoch_on_the_tiny_world(tmp_path, tiny_world):
     from training.pretrain import train
 
-    cfg = tiny_config(tmp_path / "run", tracker="m2track", model_size="slim", preset="tiny",
-                      epochs=1, batch_size=2, iters_per_epoch=2, candidates_per_frame=2,
-                      val_max_tracklets=1, val_max_frames=3, weighting="decorrelation",
-                      lr=1e-3)
+    cfg = tiny_config(
+        tmp_path / "run",
+        tracker="m2track",
+        model_size="slim",
+        preset="tiny",
+        epochs=1,
+        batch_size=2,
+        iters_per_epoch=2,
+        candidates_per_frame=2,
+        val_max_tracklets=1,
+        val_max_frames=3,
+        weighting="decorrelation",
+        lr=1e-3,
+    )
     result = train(cfg)
     assert result.epochs_done == 1 and result.steps == 2
     record = result.history[-1]

@@ -51,15 +51,23 @@ CALIB = ((0.02, -0.03, -1.0), math.pi / 2, (0.94, 0.01, 1.84))
 # Instances: (category, size (w, l, h), {frame: (axis, angle, centre)}); frame 1 of the car is a
 # gap. The barrier is not a tracking category and must not be loaded.
 INSTANCES = [
-    ("vehicle.car", (1.8, 4.5, 1.6), {
-        0: ((0, 0, 1), 0.3, (420.0, 1210.0, 1.0)),
-        2: ((0.05, 0, 1), 0.5, (424.0, 1213.0, 1.1)),
-    }),
-    ("human.pedestrian.police_officer", (0.6, 0.7, 1.8), {
-        0: ((0, 0, 1), -2.8, (408.0, 1215.0, 0.9)),
-        1: ((0, 0, 1), -2.9, (408.5, 1215.4, 0.9)),
-        2: ((0, 0, 1), 3.1, (409.0, 1215.9, 0.9)),
-    }),
+    (
+        "vehicle.car",
+        (1.8, 4.5, 1.6),
+        {
+            0: ((0, 0, 1), 0.3, (420.0, 1210.0, 1.0)),
+            2: ((0.05, 0, 1), 0.5, (424.0, 1213.0, 1.1)),
+        },
+    ),
+    (
+        "human.pedestrian.police_officer",
+        (0.6, 0.7, 1.8),
+        {
+            0: ((0, 0, 1), -2.8, (408.0, 1215.0, 0.9)),
+            1: ((0, 0, 1), -2.9, (408.5, 1215.4, 0.9)),
+            2: ((0, 0, 1), 3.1, (409.0, 1215.9, 0.9)),
+        },
+    ),
     ("movable_object.barrier", (0.5, 2.0, 1.0), {0: ((0, 0, 1), 0.0, (415.0, 1200.0, 0.5))}),
 ]
 
@@ -80,31 +88,74 @@ def write_tables(root, n_points: int = 50) -> dict:
     tok = iter(f"{i:032x}" for i in range(1, 10_000))
     sensor = {"token": next(tok), "channel": "LIDAR_TOP", "modality": "lidar"}
     cam = {"token": next(tok), "channel": "CAM_FRONT", "modality": "camera"}
-    cs = {"token": next(tok), "sensor_token": sensor["token"], "translation": list(CALIB[2]),
-          "rotation": axis_angle_quaternion(CALIB[0], CALIB[1]), "camera_intrinsic": []}
-    cs_cam = {"token": next(tok), "sensor_token": cam["token"], "translation": [0, 0, 0],
-              "rotation": [1, 0, 0, 0], "camera_intrinsic": []}
-    log = {"token": next(tok), "logfile": "l", "vehicle": "v", "date_captured": "d",
-           "location": "x"}
-    scene = {"token": next(tok), "log_token": log["token"], "name": "scene-0003",
-             "nbr_samples": 3, "description": ""}
-    other_scene = {"token": next(tok), "log_token": log["token"], "name": "scene-0001",
-                   "nbr_samples": 0, "first_sample_token": "", "last_sample_token": "",
-                   "description": ""}
+    cs = {
+        "token": next(tok),
+        "sensor_token": sensor["token"],
+        "translation": list(CALIB[2]),
+        "rotation": axis_angle_quaternion(CALIB[0], CALIB[1]),
+        "camera_intrinsic": [],
+    }
+    cs_cam = {
+        "token": next(tok),
+        "sensor_token": cam["token"],
+        "translation": [0, 0, 0],
+        "rotation": [1, 0, 0, 0],
+        "camera_intrinsic": [],
+    }
+    log = {
+        "token": next(tok),
+        "logfile": "l",
+        "vehicle": "v",
+        "date_captured": "d",
+        "location": "x",
+    }
+    scene = {
+        "token": next(tok),
+        "log_token": log["token"],
+        "name": "scene-0003",
+        "nbr_samples": 3,
+        "description": "",
+    }
+    other_scene = {
+        "token": next(tok),
+        "log_token": log["token"],
+        "name": "scene-0001",
+        "nbr_samples": 0,
+        "first_sample_token": "",
+        "last_sample_token": "",
+        "description": "",
+    }
     samples, sds, poses = [], [], []
     rng = np.random.default_rng(0)
     for k, (axis, angle, trans) in enumerate(EGO):
         s = {"token": next(tok), "timestamp": 1000 + k, "scene_token": scene["token"]}
-        pose = {"token": next(tok), "timestamp": 1000 + k, "translation": list(trans),
-                "rotation": axis_angle_quaternion(axis, angle)}
+        pose = {
+            "token": next(tok),
+            "timestamp": 1000 + k,
+            "translation": list(trans),
+            "rotation": axis_angle_quaternion(axis, angle),
+        }
         name = f"samples/LIDAR_TOP/f{k}.pcd.bin"
-        sd = {"token": next(tok), "sample_token": s["token"], "ego_pose_token": pose["token"],
-              "calibrated_sensor_token": cs["token"], "is_key_frame": True, "filename": name,
-              "timestamp": 1000 + k, "fileformat": "pcd"}
+        sd = {
+            "token": next(tok),
+            "sample_token": s["token"],
+            "ego_pose_token": pose["token"],
+            "calibrated_sensor_token": cs["token"],
+            "is_key_frame": True,
+            "filename": name,
+            "timestamp": 1000 + k,
+            "fileformat": "pcd",
+        }
         # A camera key frame of the same sample must be ignored.
-        sd_cam = {"token": next(tok), "sample_token": s["token"], "ego_pose_token": pose["token"],
-                  "calibrated_sensor_token": cs_cam["token"], "is_key_frame": True,
-                  "filename": f"samples/CAM_FRONT/f{k}.jpg", "timestamp": 1000 + k}
+        sd_cam = {
+            "token": next(tok),
+            "sample_token": s["token"],
+            "ego_pose_token": pose["token"],
+            "calibrated_sensor_token": cs_cam["token"],
+            "is_key_frame": True,
+            "filename": f"samples/CAM_FRONT/f{k}.jpg",
+            "timestamp": 1000 + k,
+        }
         samples.append(s)
         sds += [sd_cam, sd]
         poses.append(pose)
@@ -120,15 +171,23 @@ def write_tables(root, n_points: int = 50) -> dict:
     categories, instances, anns = [], [], []
     for name, size, frames in INSTANCES:
         cat = {"token": next(tok), "name": name, "description": ""}
-        inst = {"token": next(tok), "category_token": cat["token"],
-                "nbr_annotations": len(frames)}
+        inst = {"token": next(tok), "category_token": cat["token"], "nbr_annotations": len(frames)}
         chain = []
         for k, (axis, angle, centre) in frames.items():
-            chain.append({"token": next(tok), "sample_token": samples[k]["token"],
-                          "instance_token": inst["token"], "translation": list(centre),
-                          "size": list(size), "rotation": axis_angle_quaternion(axis, angle),
-                          "num_lidar_pts": 5, "num_radar_pts": 0, "attribute_tokens": [],
-                          "visibility_token": "4"})
+            chain.append(
+                {
+                    "token": next(tok),
+                    "sample_token": samples[k]["token"],
+                    "instance_token": inst["token"],
+                    "translation": list(centre),
+                    "size": list(size),
+                    "rotation": axis_angle_quaternion(axis, angle),
+                    "num_lidar_pts": 5,
+                    "num_radar_pts": 0,
+                    "attribute_tokens": [],
+                    "visibility_token": "4",
+                }
+            )
         for i, a in enumerate(chain):
             a["prev"] = chain[i - 1]["token"] if i else ""
             a["next"] = chain[i + 1]["token"] if i + 1 < len(chain) else ""
@@ -138,9 +197,15 @@ def write_tables(root, n_points: int = 50) -> dict:
         instances.append(inst)
         anns += chain[::-1]  # file order must not matter
     tables = {
-        "category": categories, "instance": instances, "sensor": [cam, sensor],
-        "calibrated_sensor": [cs_cam, cs], "ego_pose": poses, "log": [log],
-        "scene": [other_scene, scene], "sample": samples[::-1], "sample_data": sds,
+        "category": categories,
+        "instance": instances,
+        "sensor": [cam, sensor],
+        "calibrated_sensor": [cs_cam, cs],
+        "ego_pose": poses,
+        "log": [log],
+        "scene": [other_scene, scene],
+        "sample": samples[::-1],
+        "sample_data": sds,
         "sample_annotation": anns,
     }
     (root / VERSION).mkdir(parents=True, exist_ok=True)
@@ -184,27 +249,39 @@ def test_hand_built_boxes_exact_through_ego_and_sensor_poses(hand):
 
 def test_hand_built_categories_and_splits(hand):
     root, _ = hand
-    assert [t.category for t in NuScenesTracking(root, VERSION, "val", "Pedestrian").tracklets] \
-        == ["Pedestrian"]
+    assert [t.category for t in NuScenesTracking(root, VERSION, "val", "Pedestrian").tracklets] == [
+        "Pedestrian"
+    ]
     assert len(NuScenesTracking(root, VERSION, "all", ["Truck", "Car"])) == 1
     assert len(NuScenesTracking(root, VERSION, "train")) == 0  # scene-0001: no samples
     with pytest.raises(ValueError, match="split 'test' names none of the 2 scenes"):
         NuScenesTracking(root, VERSION, "test")
-    with pytest.raises(ValueError, match=r"unknown nuScenes split 'sot'; valid splits: train, "
-                       r"val, test, mini_train, mini_val, train_detect, train_track, all"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown nuScenes split 'sot'; valid splits: train, "
+        r"val, test, mini_train, mini_val, train_detect, train_track, all",
+    ):
         NuScenesTracking(root, VERSION, "sot")
-    with pytest.raises(ValueError, match=r"unknown nuScenes category \['Van'\]; valid: Bicycle, "
-                       r"Bus, Car, Motorcycle, Pedestrian, Trailer, Truck"):
+    with pytest.raises(
+        ValueError,
+        match=r"unknown nuScenes category \['Van'\]; valid: Bicycle, "
+        r"Bus, Car, Motorcycle, Pedestrian, Trailer, Truck",
+    ):
         NuScenesTracking(root, VERSION, "val", "Van")
-    with pytest.raises(ValueError, match="unknown setting 'nuscenes-3'; valid: kitti-1, kitti-2, "
-                       "nuscenes-1, nuscenes-2"):
+    with pytest.raises(
+        ValueError,
+        match="unknown setting 'nuscenes-3'; valid: kitti-1, kitti-2, nuscenes-1, nuscenes-2",
+    ):
         get_setting("nuscenes-3")
 
 
 def test_bad_tables_name_file_or_token(hand):
     root, tables = hand
-    with pytest.raises(FileNotFoundError, match=r"no version folder .*v1.0-trainval; found: "
-                       f"{VERSION}$"):
+    with pytest.raises(
+        FileNotFoundError,
+        match=r"no version folder .*v1.0-trainval; found: "
+        f"{VERSION}$",
+    ):
         NuScenesTracking(root, "v1.0-trainval", "val")
     (root / "v1.0-mini").mkdir()
     with pytest.raises(FileNotFoundError, match=f"found: v1.0-mini, {VERSION}$"):
@@ -214,8 +291,11 @@ def test_bad_tables_name_file_or_token(hand):
     anns = tables["sample_annotation"]
     bad = [dict(anns[0], sample_token="f" * 32), *anns[1:]]
     rewrite(root, "sample_annotation", bad)
-    with pytest.raises(KeyError, match=f"sample_annotation '{anns[0]['token']}' refers to "
-                       f"sample token '{'f' * 32}', which is not in .*sample.json"):
+    with pytest.raises(
+        KeyError,
+        match=f"sample_annotation '{anns[0]['token']}' refers to "
+        f"sample token '{'f' * 32}', which is not in .*sample.json",
+    ):
         NuScenesTracking(root, VERSION, "val")
     bad = [dict(anns[0], rotation=[0, 0, 0, 0]), *anns[1:]]
     rewrite(root, "sample_annotation", bad)
@@ -242,12 +322,18 @@ def test_bad_scans_name_file_and_frame(hand):
     path = root / "samples/LIDAR_TOP/f2.pcd.bin"
     data = path.read_bytes()
     path.write_bytes(data[:-4])
-    with pytest.raises(ValueError, match=r"scene scene-0003 key frame 2: .*f2.pcd.bin: size "
-                       r"\d+ bytes is not a multiple of 20"):
+    with pytest.raises(
+        ValueError,
+        match=r"scene scene-0003 key frame 2: .*f2.pcd.bin: size "
+        r"\d+ bytes is not a multiple of 20",
+    ):
         car.points(1)
     path.unlink()
-    with pytest.raises(FileNotFoundError, match=r"scene scene-0003 key frame 2: .*f2.pcd.bin "
-                       "not found"):
+    with pytest.raises(
+        FileNotFoundError,
+        match=r"scene scene-0003 key frame 2: .*f2.pcd.bin "
+        "not found",
+    ):
         car.points(1)
     pts = np.ones((3, 5), "<f4")
     pts[1, 0] = np.nan
@@ -271,7 +357,10 @@ def test_official_split_lists():
     assert set(split_scenes("mini_val")) <= set(val)
     assert split_scenes("all") is None
     assert SOT_SPLITS == {
-        "train": "train_track", "val": "train_detect", "test": "val", "all": "all"
+        "train": "train_track",
+        "val": "train_detect",
+        "test": "val",
+        "all": "all",
     }
 
 
@@ -306,8 +395,9 @@ def test_synthetic_round_trip_boxes_and_points(world):
     manifest = json.loads((world / "manifest.json").read_text())
     stats = manifest["scene_stats"]
     assert sum(s["annotations"] for s in stats.values()) == sum(len(t) for t in data.tracklets)
-    anns = {a["token"]: a for a in json.loads((world / "v1.0-mini/sample_annotation.json")
-                                              .read_text())}
+    anns = {
+        a["token"]: a for a in json.loads((world / "v1.0-mini/sample_annotation.json").read_text())
+    }
     sensor = get_sensor("hdl32")
     scenes = {scene_name(sid): s for sid, s in _generated_scenes(get_preset("tiny"), 0, sensor)}
     assert set(data.scenes) == set(scenes)
@@ -372,8 +462,13 @@ def test_env_on_nuscenes_layout_checks_and_oracle(world):
 
     from envs.geometry import offset_between
 
-    env = gym.make("pointtrack/NuScenes-v0", root=str(world), version="v1.0-mini", split="all",
-                   setting="nuscenes-1")
+    env = gym.make(
+        "pointtrack/NuScenes-v0",
+        root=str(world),
+        version="v1.0-mini",
+        split="all",
+        setting="nuscenes-1",
+    )
     u = env.unwrapped
     assert {tr.category for tr in u.tracklets} <= set(get_setting("nuscenes-1").categories)
     with warnings.catch_warnings():
@@ -420,8 +515,11 @@ def test_devkit_agrees(world, tmp_path):
     if shutil.which(python) is None and not Path(python).is_file():
         pytest.skip(f"$NUSCENES_DEVKIT_PYTHON={python} not found")
     out = tmp_path / "devkit.json"
-    subprocess.run([python, str(scripts / "nuscenes_devkit_dump.py"), str(world), "v1.0-mini",
-                    str(out)], check=True, capture_output=True)
+    subprocess.run(
+        [python, str(scripts / "nuscenes_devkit_dump.py"), str(world), "v1.0-mini", str(out)],
+        check=True,
+        capture_output=True,
+    )
     spec = importlib.util.spec_from_file_location("compare", scripts / "nuscenes_devkit_compare.py")
     compare = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(compare)
@@ -437,28 +535,70 @@ def test_cli_generate_and_eval_nuscenes(world, tmp_path, capsys):
     from training.cli import main
 
     out = tmp_path / "g"
-    assert main(["generate", "--layout", "nuscenes", "--preset", "tiny", "--out", str(out),
-                 "--version", "v1.0-custom", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "generate",
+                "--layout",
+                "nuscenes",
+                "--preset",
+                "tiny",
+                "--out",
+                str(out),
+                "--version",
+                "v1.0-custom",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     assert "nuScenes-layout world written to" in capsys.readouterr().out
     assert (out / "v1.0-custom" / "sample_annotation.json").is_file()
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["sensor"] == "hdl32" and manifest["layout"]["version"] == "v1.0-custom"
     # Same seed, same bytes as the fixture's world (version folder aside).
     for name in ("sample_annotation", "ego_pose", "scene"):
-        assert (out / "v1.0-custom" / f"{name}.json").read_bytes() == \
-            (world / "v1.0-mini" / f"{name}.json").read_bytes()
-    assert main(["generate", "--preset", "tiny", "--out", str(tmp_path / "k"),
-                 "--version", "v1.0-mini"]) == 2
+        assert (out / "v1.0-custom" / f"{name}.json").read_bytes() == (
+            world / "v1.0-mini" / f"{name}.json"
+        ).read_bytes()
+    assert (
+        main(
+            ["generate", "--preset", "tiny", "--out", str(tmp_path / "k"), "--version", "v1.0-mini"]
+        )
+        == 2
+    )
     assert "--version applies to --layout nuscenes" in capsys.readouterr().err
 
     report_dir = tmp_path / "eval"
-    assert main(["eval", "--dataset", "nuscenes", "--root", str(world), "--version", "v1.0-mini",
-                 "--split", "test", "--tracker", "previous_box", "--no-progress",
-                 "--out", str(report_dir)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                "--dataset",
+                "nuscenes",
+                "--root",
+                str(world),
+                "--version",
+                "v1.0-mini",
+                "--split",
+                "test",
+                "--tracker",
+                "previous_box",
+                "--no-progress",
+                "--out",
+                str(report_dir),
+            ]
+        )
+        == 0
+    )
     report = json.loads((report_dir / "report.json").read_text())["previous_box"]
-    frames = sum(len(t) for t in NuScenesTracking(world, "v1.0-mini", "val",
-                                                       get_setting("nuscenes-1").categories)
-                 .tracklets if len(t) >= 2)
+    frames = sum(
+        len(t)
+        for t in NuScenesTracking(
+            world, "v1.0-mini", "val", get_setting("nuscenes-1").categories
+        ).tracklets
+        if len(t) >= 2
+    )
     assert report["observed"]["frames"] + report["unseen"]["frames"] == frames
 
 
@@ -471,8 +611,9 @@ def test_training_loads_nuscenes_roles(world):
     )
     assert {t.scene for t in tracklets} == {"scene-0004"}  # train_track
     assert {t.category for t in tracklets} <= set(setting.observed)
-    val, _, _ = load_tracklets("nuscenes", "val", setting="nuscenes-2", data_root=str(world),
-                               version="v1.0-mini")
+    val, _, _ = load_tracklets(
+        "nuscenes", "val", setting="nuscenes-2", data_root=str(world), version="v1.0-mini"
+    )
     assert {t.scene for t in val} == {"scene-0001"}  # train_detect, never the test split
     TrainConfig(dataset="nuscenes", setting="nuscenes-1").validate()
 
@@ -482,11 +623,21 @@ def test_selection_on_nuscenes_layout_worlds():
 
     with pytest.raises(ValueError, match="dataset must be 'synthetic' or 'nuscenes'"):
         SelectionConfig(dataset="kitti")
-    config = SelectionConfig(setting="nuscenes-1", preset="tiny", sensor="hdl32",
-                             parts=(ValPart(1, "test"),), num_envs=1, dataset="nuscenes")
+    config = SelectionConfig(
+        setting="nuscenes-1",
+        preset="tiny",
+        sensor="hdl32",
+        parts=(ValPart(1, "test"),),
+        num_envs=1,
+        dataset="nuscenes",
+    )
     rows = score_candidates(["previous_box"], config)
     from envs.synthetic.nuscenes_layout import ensure_nuscenes_world
 
-    data = NuScenesTracking(ensure_nuscenes_world("tiny", "hdl32", 1), "v1.0-mini", "val",
-                            get_setting("nuscenes-1").observed)
+    data = NuScenesTracking(
+        ensure_nuscenes_world("tiny", "hdl32", 1),
+        "v1.0-mini",
+        "val",
+        get_setting("nuscenes-1").observed,
+    )
     assert rows[0]["frames"] == sum(len(t) for t in data.tracklets if len(t) >= 2)

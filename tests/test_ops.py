@@ -20,8 +20,11 @@ def _ball_query_ref(radius, k, xyz, centres):
     out = np.zeros((b, m, k), np.int64)
     for bi in range(b):
         for mi in range(m):
-            hits = [j for j in range(xyz.shape[1])
-                    if ((xyz[bi, j] - centres[bi, mi]) ** 2).sum() < radius * radius]
+            hits = [
+                j
+                for j in range(xyz.shape[1])
+                if ((xyz[bi, j] - centres[bi, mi]) ** 2).sum() < radius * radius
+            ]
             hits = hits[:k]
             row = hits + [hits[0] if hits else 0] * (k - len(hits))
             out[bi, mi] = row
@@ -158,8 +161,9 @@ def test_hash_order_sorts_by_the_documented_key():
     whose coordinate part is the two-chain murmur hash computed here in plain integers."""
     xyz = _points(b=2, n=64, seed=12, scale=4.0)
     key = _hash_key_reference(xyz.double(), seed=5)
-    spread = ops._mix32(ops._mix32((key & 0xFFFFFFFF) ^ ops._mul32(torch.ones_like(key),
-                                                                     0x9E3779B1)) ^ (key >> 32))
+    spread = ops._mix32(
+        ops._mix32((key & 0xFFFFFFFF) ^ ops._mul32(torch.ones_like(key), 0x9E3779B1)) ^ (key >> 32)
+    )
     final = ((spread >> 1) << 31) | (key >> 32)
     assert torch.equal(ops.hash_order(xyz, seed=5), final.argsort(dim=1, stable=True))
 
@@ -176,12 +180,15 @@ def test_mul32_exact():
 def test_ops_cpu_equals_gpu():  # pragma: no cover - GPU machines only
     xyz = _points(n=500, seed=10)
     centres = xyz[:, :100]
-    assert torch.equal(ops.ball_query(0.2, 16, xyz, centres),
-                       ops.ball_query(0.2, 16, xyz.cuda(), centres.cuda()).cpu())
+    assert torch.equal(
+        ops.ball_query(0.2, 16, xyz, centres),
+        ops.ball_query(0.2, 16, xyz.cuda(), centres.cuda()).cpu(),
+    )
     assert torch.equal(ops.hash_order(xyz), ops.hash_order(xyz.cuda()).cpu())
     assert torch.equal(ops.knn(8, centres, xyz)[1], ops.knn(8, centres.cuda(), xyz.cuda())[1].cpu())
-    assert torch.equal(ops.farthest_point_sample(xyz, 50),
-                       ops.farthest_point_sample(xyz.cuda(), 50).cpu())
+    assert torch.equal(
+        ops.farthest_point_sample(xyz, 50), ops.farthest_point_sample(xyz.cuda(), 50).cpu()
+    )
 
 
 def test_hash_order_spreads_duplicates_like_a_random_permutation():
@@ -202,8 +209,9 @@ def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, dense_pair
     monkeypatch.setattr(ops, "_DENSE_PAIRS", dense_pairs)
     xyz = _points(n=200, seed=4)
     xyz[:, 100:130] = xyz[:, 60:90]  # copies: equal keys in the sorted grid cells
-    centres = torch.cat([xyz[:, :40], torch.full((2, 2, 3), 5.0), torch.full((2, 1, 3), -5.0)],
-                        dim=1)  # 3 without a hit, beyond either end of the x range
+    centres = torch.cat(
+        [xyz[:, :40], torch.full((2, 2, 3), 5.0), torch.full((2, 1, 3), -5.0)], dim=1
+    )  # 3 without a hit, beyond either end of the x range
     idx, count = ops.ball_query(radius, k, xyz, centres, return_count=True)
     group, point = ops.ball_query_pairs(radius, k, xyz, centres)
     b, m = count.shape
@@ -254,8 +262,14 @@ def test_ball_query_grid_cells_find_every_hit(seed):
     xyz = (torch.rand(2, 300, 3, generator=g) - 0.5) * 6
     xyz[:, :100] = torch.round(xyz[:, :100] / radius) * radius  # on the grid lines
     xyz[:, 250:] = xyz[:, 50:100].clone()
-    centres = torch.cat([xyz[:, :80], xyz[:, 80:120] + (torch.rand(2, 40, 3, generator=g) - 0.5)
-                         * 2 * radius, torch.full((2, 3, 3), 9.0)], dim=1)
+    centres = torch.cat(
+        [
+            xyz[:, :80],
+            xyz[:, 80:120] + (torch.rand(2, 40, 3, generator=g) - 0.5) * 2 * radius,
+            torch.full((2, 3, 3), 9.0),
+        ],
+        dim=1,
+    )
     dense = ops._ball_dense(radius, k, xyz, centres)
     grid = ops._ball_grid(radius, k, xyz, centres)
     assert torch.equal(dense[0], grid[0]) and torch.equal(dense[1], grid[1])

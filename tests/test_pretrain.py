@@ -12,8 +12,13 @@ from training.pretrain import TrainingError, train
 
 def _run(out, *, resume=False, nan_at=None, val_fn=False, **kw):
     cfg = tiny_config(out, **kw)
-    return train(cfg, resume=resume, model_factory=lambda c: TinyTracker(nan_at_step=nan_at),
-                 train_data=small_dataset(), val_fn=val_fn)
+    return train(
+        cfg,
+        resume=resume,
+        model_factory=lambda c: TinyTracker(nan_at_step=nan_at),
+        train_data=small_dataset(),
+        val_fn=val_fn,
+    )
 
 
 def _weights(path):
@@ -21,8 +26,12 @@ def _weights(path):
 
 
 def test_two_epoch_run_lowers_the_loss(tmp_path):
-    res = _run(tmp_path / "a", epochs=2, iters_per_epoch=8, val_fn=lambda m: {"success": 1.0,
-                                                                              "precision": 2.0})
+    res = _run(
+        tmp_path / "a",
+        epochs=2,
+        iters_per_epoch=8,
+        val_fn=lambda m: {"success": 1.0, "precision": 2.0},
+    )
     first, second = res.history[0]["total"], res.history[1]["total"]
     assert second < first
     assert res.epochs_done == 2 and res.steps == 16
@@ -81,8 +90,13 @@ def test_nan_loss_stops_naming_step_and_samples(tmp_path):
     with pytest.raises(TrainingError, match=r"step 5 .*sample \d+ \(tracklet"):
         cfg = tiny_config(out, epochs=2)
         model = TinyTracker(nan_at_step=1)
-        train(cfg, resume=True, model_factory=lambda c: model, train_data=small_dataset(),
-              val_fn=False)
+        train(
+            cfg,
+            resume=True,
+            model_factory=lambda c: model,
+            train_data=small_dataset(),
+            val_fn=False,
+        )
     after = torch.load(out / "last.pt", weights_only=True)
     assert after["epoch"] == 1
     for k in before:
@@ -114,8 +128,7 @@ def test_bad_configs_fail_naming_keys(tmp_path):
 def test_train_command_rejects_bad_flags_before_training(tmp_path, capsys):
     from training.cli import main
 
-    assert main(["train", "--tracker", "p2b", "--out", str(tmp_path / "x"),
-                 "--set", "nope=1"]) == 2
+    assert main(["train", "--tracker", "p2b", "--out", str(tmp_path / "x"), "--set", "nope=1"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("pointtrack train: ") and "nope" in err and err.count("\n") == 1
     assert not (tmp_path / "x").exists()
@@ -131,11 +144,22 @@ def test_resume_exact_with_a_real_tracker(tmp_path):
     from training.samples import TrackingSamples
 
     def run(out, epochs, resume=False):
-        cfg = tiny_config(out, epochs=epochs, batch_size=2, iters_per_epoch=1,
-                          weighting="decorrelation", model_size="slim")
+        cfg = tiny_config(
+            out,
+            epochs=epochs,
+            batch_size=2,
+            iters_per_epoch=1,
+            weighting="decorrelation",
+            model_size="slim",
+        )
         data = TrackingSamples(fake_tracklets(n=2, frames=4), candidates_per_frame=1)
-        return train(cfg, resume=resume, train_data=data, val_fn=False,
-                     model_factory=lambda c: trackers.make("p2b", **tracker_config("p2b", "slim")))
+        return train(
+            cfg,
+            resume=resume,
+            train_data=data,
+            val_fn=False,
+            model_factory=lambda c: trackers.make("p2b", **tracker_config("p2b", "slim")),
+        )
 
     run(tmp_path / "full", 2)
     run(tmp_path / "cut", 1)
@@ -164,8 +188,9 @@ def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
     data = TrackingSamples(fake_tracklets(n=2, frames=4), candidates_per_frame=1)
 
     def trainer(init, **extra):
-        cfg = tiny_config(tmp_path / "run", batch_size=2, model_size="slim",
-                          init_weights=str(init), **extra)
+        cfg = tiny_config(
+            tmp_path / "run", batch_size=2, model_size="slim", init_weights=str(init), **extra
+        )
         return Trainer(cfg, train_data=data, val_fn=False)
 
     model = trainer(path).model
@@ -190,22 +215,41 @@ def test_every_train_flag_reaches_the_config():
 
     parser = argparse.ArgumentParser()
     add_arguments(parser)
-    not_config = {"help", "config", "set", "resume", "no_progress", "export",
-                  "drct", "domain_randomize"}  # switches: tests/test_drct.py (mutually exclusive)
+    not_config = {
+        "help",
+        "config",
+        "set",
+        "resume",
+        "no_progress",
+        "export",
+        "drct",
+        "domain_randomize",
+    }  # switches: tests/test_drct.py (mutually exclusive)
     # flag destination -> (value given on the command line, expected config key and value)
     given = {
-        "tracker": ("gpt", "tracker", "gpt"), "setting": ("kitti-2", "setting", "kitti-2"),
-        "category": ("Car", "category", "Car"), "model_size": ("slim", "model_size", "slim"),
-        "weighting": ("sam", "weighting", "sam"), "dataset": ("kitti", "dataset", "kitti"),
-        "preset": ("small", "preset", "small"), "sensor": ("hdl32", "sensor", "hdl32"),
-        "data_root": ("/data/k", "data_root", "/data/k"), "world_seed": ("4", "world_seed", 4),
-        "epochs": ("5", "epochs", 5), "batch_size": ("6", "batch_size", 6),
-        "lr": ("0.002", "lr", 0.002), "iters_per_epoch": ("7", "iters_per_epoch", 7),
+        "tracker": ("gpt", "tracker", "gpt"),
+        "setting": ("kitti-2", "setting", "kitti-2"),
+        "category": ("Car", "category", "Car"),
+        "model_size": ("slim", "model_size", "slim"),
+        "weighting": ("sam", "weighting", "sam"),
+        "dataset": ("kitti", "dataset", "kitti"),
+        "preset": ("small", "preset", "small"),
+        "sensor": ("hdl32", "sensor", "hdl32"),
+        "data_root": ("/data/k", "data_root", "/data/k"),
+        "world_seed": ("4", "world_seed", 4),
+        "epochs": ("5", "epochs", 5),
+        "batch_size": ("6", "batch_size", 6),
+        "lr": ("0.002", "lr", 0.002),
+        "iters_per_epoch": ("7", "iters_per_epoch", 7),
         "candidates_per_frame": ("2", "candidates_per_frame", 2),
-        "size_jitter": ("0.3", "size_jitter", 0.3), "ema_decay": ("0.99", "ema_decay", 0.99),
-        "seed": ("9", "seed", 9), "init_weights": ("p2b-kitti1-u", "init_weights", "p2b-kitti1-u"),
-        "out": ("runs/z", "out", "runs/z"), "num_workers": ("1", "num_workers", 1),
-        "threads": ("2", "num_threads", 2), "device": ("cuda:1", "device", "cuda:1"),
+        "size_jitter": ("0.3", "size_jitter", 0.3),
+        "ema_decay": ("0.99", "ema_decay", 0.99),
+        "seed": ("9", "seed", 9),
+        "init_weights": ("p2b-kitti1-u", "init_weights", "p2b-kitti1-u"),
+        "out": ("runs/z", "out", "runs/z"),
+        "num_workers": ("1", "num_workers", 1),
+        "threads": ("2", "num_threads", 2),
+        "device": ("cuda:1", "device", "cuda:1"),
         "val_max_tracklets": ("3", "val_max_tracklets", 3),
         "val_max_frames": ("11", "val_max_frames", 11),
         "nuscenes_version": ("v1.0-mini", "nuscenes_version", "v1.0-mini"),

@@ -25,10 +25,22 @@ def test_ddp_two_processes_match_single_process(tmp_path, weighting):
     ddp = tmp_path / "ddp"
     env = dict(os.environ, OMP_NUM_THREADS="1", PYTHONPATH=str(HERE.parent))
     proc = subprocess.run(
-        [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-         "--master_port", str(29500 + os.getpid() % 1000),
-         str(HERE / "test_pretrain_support.py"), str(ddp), weighting],
-        env=env, capture_output=True, text=True, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "torch.distributed.run",
+            "--nproc_per_node",
+            "2",
+            "--master_port",
+            str(29500 + os.getpid() % 1000),
+            str(HERE / "test_pretrain_support.py"),
+            str(ddp),
+            weighting,
+        ],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     a = torch.load(single / "last.pt", weights_only=True)["model"]

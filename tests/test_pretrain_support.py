@@ -76,13 +76,18 @@ class TinyTracker(nn.Module):
         logits = self.cls(f).squeeze(-1)
         off = self.head(torch.cat([f.amax(dim=1), t], dim=-1))
         proposals = off[:, None].expand(-1, 64, -1)
-        return {"Z": f, "point_logits": logits, "proposals": proposals,
-                "scores": torch.zeros(off.shape[0], 64)}
+        return {
+            "Z": f,
+            "point_logits": logits,
+            "proposals": proposals,
+            "scores": torch.zeros(off.shape[0], 64),
+        }
 
     def loss(self, outputs, targets):
         self.calls += 1
         cls = nn.functional.binary_cross_entropy_with_logits(
-            outputs["point_logits"], targets["search_labels"], reduction="none").mean(1)
+            outputs["point_logits"], targets["search_labels"], reduction="none"
+        ).mean(1)
         gt = torch.cat([targets["search_box"][:, :3], targets["search_box"][:, 6:7]], 1)
         reg = nn.functional.smooth_l1_loss(outputs["proposals"][:, 0], gt, reduction="none").mean(1)
         total = cls + reg
@@ -98,15 +103,24 @@ class TinyTracker(nn.Module):
 def small_dataset(seed: int = 0):
     from training.samples import TrackingSamples
 
-    return TrackingSamples(fake_tracklets(), candidates_per_frame=2, seed=seed,
-                           template_size=32, search_size=64)
+    return TrackingSamples(
+        fake_tracklets(), candidates_per_frame=2, seed=seed, template_size=32, search_size=64
+    )
 
 
 def tiny_config(out, **kw):
     from training.config import TrainConfig
 
-    base = dict(tracker="p2b", out=str(out), epochs=2, batch_size=4, iters_per_epoch=4,
-                lr=1e-2, progress=False, num_threads=1)
+    base = dict(
+        tracker="p2b",
+        out=str(out),
+        epochs=2,
+        batch_size=4,
+        iters_per_epoch=4,
+        lr=1e-2,
+        progress=False,
+        num_threads=1,
+    )
     base.update(kw)
     return TrainConfig(**base).validate()
 

@@ -34,8 +34,13 @@ def _samples(recipe: str = "v1", **overrides) -> TrackingSamples:
     cfg = config_from_dict({"recipe": recipe, **overrides})
     values = cfg.recipe_values()
     kwargs = {k: values[k] for k in SAMPLE_RECIPE_KEYS}
-    return TrackingSamples(fake_tracklets(n=3, frames=6), candidates_per_frame=4, seed=3,
-                           search_enlargement=cfg.search_enlargement(), **kwargs)
+    return TrackingSamples(
+        fake_tracklets(n=3, frames=6),
+        candidates_per_frame=4,
+        seed=3,
+        search_enlargement=cfg.search_enlargement(),
+        **kwargs,
+    )
 
 
 def _offset(sample) -> tuple[np.ndarray, float]:
@@ -66,8 +71,10 @@ def test_recipe_v1_samples_are_byte_identical_to_the_recorded_old_samples():
 def test_v1_config_resolves_to_the_old_values():
     cfg = config_from_dict({"recipe": "v1", "tracker": "bat"})
     assert cfg.recipe_values() == RECIPES["v1"]
-    assert cfg.env_kwargs() == {"template_mode": "first_and_previous",
-                                "search_enlargement": (1.25, 2.0)}
+    assert cfg.env_kwargs() == {
+        "template_mode": "first_and_previous",
+        "search_enlargement": (1.25, 2.0),
+    }
     assert "sampling" not in cfg.make_kwargs().get("backbone", {})
 
 
@@ -87,8 +94,9 @@ def test_zero_offset_candidate_gives_candidate_zero_the_exact_ground_truth():
 
 
 def test_zero_offset_needs_several_candidates_as_in_open3dsot():
-    data = TrackingSamples(fake_tracklets(n=2, frames=4), candidates_per_frame=1,
-                           zero_offset_candidate=True)
+    data = TrackingSamples(
+        fake_tracklets(n=2, frames=4), candidates_per_frame=1, zero_offset_candidate=True
+    )
     assert not np.allclose(data[0]["search_box"].numpy()[[0, 1, 6]], 0.0, atol=1e-6)
 
 
@@ -126,8 +134,12 @@ def _sparse_first_frame(tracklets, keep: int = 60):
 
 
 def test_template_union_draws_from_first_and_previous_crops_merged():
-    data = TrackingSamples(_sparse_first_frame(fake_tracklets(n=3, frames=6)),
-                           candidates_per_frame=3, seed=2, template_union=True)
+    data = TrackingSamples(
+        _sparse_first_frame(fake_tracklets(n=3, frames=6)),
+        candidates_per_frame=3,
+        seed=2,
+        template_union=True,
+    )
     shares = []
     for i in range(len(data)):
         k, t, cand = data.locate(i)
@@ -148,8 +160,9 @@ def test_template_union_draws_from_first_and_previous_crops_merged():
         from_first = np.all(centres == 0.0, axis=1)  # the first crop's centre is its origin
         assert from_first[: len(first)].all() and not from_first[len(first)].any()
         own0 = np.array([0, 0, 0, *tr.boxes[0][3:6], 0.0])
-        assert np.array_equal(s["template_labels"][from_first] > 0.5,
-                              points_in_box(s["template"][from_first], own0))
+        assert np.array_equal(
+            s["template_labels"][from_first] > 0.5, points_in_box(s["template"][from_first], own0)
+        )
         n_prev = len(np.unique(s["template"][~from_first], axis=0))  # the jittered crop's size
         shares.append((from_first.mean(), len(first) / (len(first) + n_prev)))
     got, expected = np.array(shares).T
@@ -163,8 +176,15 @@ def test_min_crop_points_replaces_samples_with_too_few_points():
     good = fake_tracklets(n=2, frames=5)
     boxes = np.array(good[0].boxes)
     # a tracklet whose target is nearly empty (5 points per frame) and far from any background
-    sparse = Tracklet("9999/9", "9999", 9, "Pedestrian", np.arange(5), boxes,
-                      FakeScans(boxes, 9, n_target=5, n_background=0))
+    sparse = Tracklet(
+        "9999/9",
+        "9999",
+        9,
+        "Pedestrian",
+        np.arange(5),
+        boxes,
+        FakeScans(boxes, 9, n_target=5, n_background=0),
+    )
     kwargs = {"candidates_per_frame": 2, "seed": 1}
     keep = TrackingSamples([sparse, *good], **kwargs)
     redraw = TrackingSamples([sparse, *good], min_crop_points=21, **kwargs)
@@ -185,8 +205,15 @@ def test_min_crop_points_replaces_samples_with_too_few_points():
 
 def test_min_crop_points_gives_up_with_a_clear_error():
     boxes = np.array(fake_tracklets(n=1, frames=3)[0].boxes)
-    sparse = Tracklet("9999/9", "9999", 9, "Pedestrian", np.arange(3), boxes,
-                      FakeScans(boxes, 9, n_target=5, n_background=0))
+    sparse = Tracklet(
+        "9999/9",
+        "9999",
+        9,
+        "Pedestrian",
+        np.arange(3),
+        boxes,
+        FakeScans(boxes, 9, n_target=5, n_background=0),
+    )
     data = TrackingSamples([sparse], min_crop_points=21)
     with pytest.raises(ValueError, match=r"sample 0 .*min_crop_points"):
         data[0]
@@ -220,8 +247,12 @@ def test_search_enlargement_crops_gpt_search_regions_by_four_metres():
     assert (v2_p2b.search_scale, v2_p2b.search_offset_m) == (1.25, 2.0)
     cfg = config_from_dict({"tracker": "gpt", "recipe": "v2"})
     assert cfg.env_kwargs()["search_enlargement"] == (1.0, 4.0)
-    data = TrackingSamples(fake_tracklets(n=1, frames=3), candidates_per_frame=2,
-                           zero_offset_candidate=True, search_enlargement=(1.0, 4.0))
+    data = TrackingSamples(
+        fake_tracklets(n=1, frames=3),
+        candidates_per_frame=2,
+        zero_offset_candidate=True,
+        search_enlargement=(1.0, 4.0),
+    )
     tr = data.tracklets[0]
     crop = crop_box_frame(tr.points(1), tr.boxes[1], 1.0, 4.0)
     assert len(crop) <= 1024
@@ -258,8 +289,7 @@ def test_env_merged_template_is_the_union_of_first_and_previous_crops():
     prev = crop_box_frame(tr.points(1), tr.boxes[1], 1.25)
     union = np.concatenate([first, prev])
     assert len(union) <= 512
-    assert np.allclose(_sorted_rows(obs["template"][: len(union)]), _sorted_rows(union),
-                       atol=1e-5)
+    assert np.allclose(_sorted_rows(obs["template"][: len(union)]), _sorted_rows(union), atol=1e-5)
 
 
 def test_env_search_enlargement_matches_the_samples_crop_and_is_validated():
@@ -270,8 +300,7 @@ def test_env_search_enlargement_matches_the_samples_crop_and_is_validated():
 
     data = Data()
     data.tracklets = tracklets
-    env = TrackingEnv(data, reference="current_gt", search_enlargement=(1.0, 4.0),
-                      episode_seed=0)
+    env = TrackingEnv(data, reference="current_gt", search_enlargement=(1.0, 4.0), episode_seed=0)
     obs, _ = env.reset()
     tr = tracklets[0]
     crop = crop_box_frame(tr.points(1), tr.boxes[1], 1.0, 4.0)
@@ -325,8 +354,8 @@ def _hand_pooled(outputs, targets, w, weights_k):
             pos = d < 0.3
             if pos or d > 0.6:
                 obj = F.binary_cross_entropy_with_logits(
-                    outputs["scores"][i, q], torch.tensor(float(pos)),
-                    pos_weight=torch.tensor(2.0))
+                    outputs["scores"][i, q], torch.tensor(float(pos)), pos_weight=torch.tensor(2.0)
+                )
                 terms["objectness"][0] += w[i] * float(obj)
                 terms["objectness"][1] += w[i]
             if pos:
@@ -389,8 +418,11 @@ def test_kaiming_init_and_torch_default_init():
     # torch's default: uniform within 1 / sqrt(fan_in)
     assert float(lin1.weight.detach().abs().max()) <= 1 / math.sqrt(fan_in) + 1e-6
     assert float(lin2.weight.detach().abs().max()) > 1 / math.sqrt(fan_in)
-    assert all(float(m.bias.detach().abs().max()) == 0.0 for m in v2.modules()
-               if isinstance(m, torch.nn.Linear) and m.bias is not None)
+    assert all(
+        float(m.bias.detach().abs().max()) == 0.0
+        for m in v2.modules()
+        if isinstance(m, torch.nn.Linear) and m.bias is not None
+    )
 
 
 def test_adam_settings_follow_the_recipe(tmp_path):
@@ -399,8 +431,12 @@ def test_adam_settings_follow_the_recipe(tmp_path):
     base = {"model_size": "slim", "batch_size": 4, "out": str(tmp_path / "r"), "progress": False}
     for recipe, betas, eps in (("v1", (0.9, 0.999), 1e-8), ("v2", (0.5, 0.999), 1e-6)):
         cfg = config_from_dict({**base, "recipe": recipe})
-        trainer = Trainer(cfg, model_factory=lambda c: TinyTracker(),
-                          train_data=TrackingSamples(fake_tracklets(n=2, frames=4)), val_fn=False)
+        trainer = Trainer(
+            cfg,
+            model_factory=lambda c: TinyTracker(),
+            train_data=TrackingSamples(fake_tracklets(n=2, frames=4)),
+            val_fn=False,
+        )
         group = trainer.base_opt.param_groups[0]
         assert tuple(group["betas"]) == betas and group["eps"] == eps
         assert trainer.pooled == (recipe == "v2")
@@ -412,15 +448,21 @@ def test_adam_settings_follow_the_recipe(tmp_path):
 def test_bat_fps_backbone_handles_clouds_with_few_distinct_points():
     cfg = config_from_dict({"tracker": "bat", "model_size": "slim", "recipe": "v2"})
     assert cfg.make_kwargs()["backbone"]["sampling"] == "fps"
-    assert config_from_dict({"tracker": "p2b"}).make_kwargs().get("backbone", {}).get(
-        "sampling") is None
+    assert (
+        config_from_dict({"tracker": "p2b"}).make_kwargs().get("backbone", {}).get("sampling")
+        is None
+    )
     model = trackers.make("bat", **cfg.make_kwargs()).train()
     g = torch.Generator().manual_seed(0)
     distinct = torch.randn(2, 5, 3, generator=g)
     template = distinct[:, torch.randint(0, 5, (512,), generator=g)]
     search = torch.randn(2, 1024, 3, generator=g)
-    batch = {"template": template, "search": search, "size": torch.ones(2, 3),
-             "motion": torch.zeros(2, 4)}
+    batch = {
+        "template": template,
+        "search": search,
+        "size": torch.ones(2, 3),
+        "motion": torch.zeros(2, 4),
+    }
     out = model(batch)
     assert torch.isfinite(out["proposals"]).all()
 
@@ -428,15 +470,18 @@ def test_bat_fps_backbone_handles_clouds_with_few_distinct_points():
 # ---------------------------------------------------------------- bad values, resume
 
 
-@pytest.mark.parametrize("key, value, message", [
-    ("recipe", "v3", "recipe='v3': must be one of v1, v2"),
-    ("loss_reduction", "mean", "loss_reduction='mean'"),
-    ("init", "xavier", "init='xavier'"),
-    ("min_crop_points", -1, "min_crop_points=-1"),
-    ("adam_beta1", 1.0, "adam_beta1=1.0"),
-    ("adam_eps", 0.0, "adam_eps=0.0"),
-    ("template_union", "yes", "template_union='yes': must be true or false"),
-])
+@pytest.mark.parametrize(
+    "key, value, message",
+    [
+        ("recipe", "v3", "recipe='v3': must be one of v1, v2"),
+        ("loss_reduction", "mean", "loss_reduction='mean'"),
+        ("init", "xavier", "init='xavier'"),
+        ("min_crop_points", -1, "min_crop_points=-1"),
+        ("adam_beta1", 1.0, "adam_beta1=1.0"),
+        ("adam_eps", 0.0, "adam_eps=0.0"),
+        ("template_union", "yes", "template_union='yes': must be true or false"),
+    ],
+)
 def test_bad_recipe_values_stop_before_training_naming_them(key, value, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
         config_from_dict({key: value})
@@ -461,8 +506,9 @@ def test_checkpoints_from_before_the_recipe_resume_only_as_v1():
 
 def test_yaw_of_recovered_offset_is_wrapped():
     # _offset's convention check: a sample with zero offset recovers zeros
-    data = TrackingSamples(fake_tracklets(n=1, frames=3), candidates_per_frame=2,
-                           zero_offset_candidate=True)
+    data = TrackingSamples(
+        fake_tracklets(n=1, frames=3), candidates_per_frame=2, zero_offset_candidate=True
+    )
     d, dyaw = _offset(data[0])
     assert np.allclose(d, 0.0, atol=1e-5) and abs(wrap_yaw(dyaw)) < 1e-6
 
@@ -470,8 +516,9 @@ def test_yaw_of_recovered_offset_is_wrapped():
 def test_checkpoint_trackers_are_rebuilt_with_their_recipe():
     from training.config import checkpoint_tracker_kwargs
 
-    v2 = dataclasses.asdict(config_from_dict({"tracker": "bat", "model_size": "slim",
-                                              "recipe": "v2"}))
+    v2 = dataclasses.asdict(
+        config_from_dict({"tracker": "bat", "model_size": "slim", "recipe": "v2"})
+    )
     assert checkpoint_tracker_kwargs(v2)["backbone"]["sampling"] == "fps"
     old = {k: v for k, v in v2.items() if k != "recipe" and k not in RECIPES["v2"]}
     assert "sampling" not in checkpoint_tracker_kwargs(old)["backbone"]  # a v1 run

@@ -113,16 +113,23 @@ def test_first_update_sees_ratio_one_and_changes_only_trained_parts(data):
     changed = {k for k in before if not torch.equal(before[k], after[k])}
     assert changed and all(k.startswith("head.") for k in changed)
     assert not any(k.startswith(("backbone.", "fusion.")) for k in changed)
-    assert any(not torch.equal(a, b) for a, b in zip(value_before, policy.value_head.parameters(),
-                                                     strict=True))
+    assert any(
+        not torch.equal(a, b)
+        for a, b in zip(value_before, policy.value_head.parameters(), strict=True)
+    )
 
 
 def test_train_parts_select_the_tracker_modules(data):
     base = trackers.load("p2b-kitti1-u")
-    ids = {name: {id(p) for p in getattr(base, name).parameters()}
-           for name in ("backbone", "fusion", "head")}
-    for parts, expected in (("head", {"head"}), ("fusion+head", {"fusion", "head"}),
-                            ("all", {"backbone", "fusion", "head"})):
+    ids = {
+        name: {id(p) for p in getattr(base, name).parameters()}
+        for name in ("backbone", "fusion", "head")
+    }
+    for parts, expected in (
+        ("head", {"head"}),
+        ("fusion+head", {"fusion", "head"}),
+        ("all", {"backbone", "fusion", "head"}),
+    ):
         policy = ppo(data, base, policy_kwargs={"train_parts": parts}).policy
         got = {id(p) for p in policy.trainable_tracker_parameters}
         own = {name: {id(p) for p in getattr(policy.tracker, name).parameters()} for name in ids}
@@ -141,14 +148,15 @@ def test_frozen_actor_trains_the_critic_only(data):
     model.learn(16)
     assert all(torch.equal(v, tracker_before[k]) for k, v in policy.tracker.state_dict().items())
     assert torch.equal(policy.log_std.detach(), std_before)
-    assert any(not torch.equal(a, b) for a, b in zip(value_before, policy.value_head.parameters(),
-                                                     strict=True))
+    assert any(
+        not torch.equal(a, b)
+        for a, b in zip(value_before, policy.value_head.parameters(), strict=True)
+    )
 
 
 def test_scaled_adam_steps_each_group_with_its_scaled_rate():
     a, b = torch.nn.Parameter(torch.zeros(3)), torch.nn.Parameter(torch.zeros(3))
-    opt = ScaledAdam([{"params": [a], "lr_scale": 1.0}, {"params": [b], "lr_scale": 0.01}],
-                     lr=0.1)
+    opt = ScaledAdam([{"params": [a], "lr_scale": 1.0}, {"params": [b], "lr_scale": 0.01}], lr=0.1)
     a.grad, b.grad = torch.ones(3), torch.ones(3)
     opt.step()
     # Adam's first step moves by lr * g / (|g| + eps) = lr for unit gradients
@@ -161,8 +169,14 @@ def test_a2c_drives_the_same_policy_with_its_rmsprop(data):
     from stable_baselines3 import A2C
 
     base = trackers.load("p2b-kitti1-u")
-    model = A2C(TrackerPolicy, rescaled(data), n_steps=8, seed=0, device="cpu",
-                policy_kwargs={"tracker": base, "tracker_lr_scale": 1.0})
+    model = A2C(
+        TrackerPolicy,
+        rescaled(data),
+        n_steps=8,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"tracker": base, "tracker_lr_scale": 1.0},
+    )
     opt = model.policy.optimizer
     assert isinstance(opt, torch.optim.RMSprop) and opt.param_groups[1]["lr_scale"] == 1.0
     before = {k: v.clone() for k, v in model.policy.tracker.state_dict().items()}
@@ -220,8 +234,12 @@ def test_the_docs_example_runs(tmp_path, monkeypatch):
     text = (Path(__file__).resolve().parents[1] / "docs" / "rl.md").read_text()
     code = text.split("```python\n", 1)[1].split("```", 1)[0]
     assert len(code.strip().splitlines()) <= 16  # the "at most 15 lines" (+ a blank)
-    for old, new in (('preset="small"', 'preset="tiny"'), ("n_steps=128", "n_steps=8"),
-                     ("batch_size=64", "batch_size=8"), ("learn(2048)", "learn(8)")):
+    for old, new in (
+        ('preset="small"', 'preset="tiny"'),
+        ("n_steps=128", "n_steps=8"),
+        ("batch_size=64", "batch_size=8"),
+        ("learn(2048)", "learn(8)"),
+    ):
         assert old in code
         code = code.replace(old, new)
     monkeypatch.chdir(tmp_path)

@@ -28,9 +28,16 @@ def _reference_box(gt: np.ndarray, search_box: np.ndarray) -> np.ndarray:
 def test_shapes_and_keys(data):
     s = data[0]
     assert len(data) == 3 * 5 * 3
-    shapes = {"template": (512, 3), "search": (1024, 3), "size": (3,), "motion": (4,),
-              "search_box": (7,), "search_labels": (1024,), "template_centers": (512, 3),
-              "template_labels": (512,)}
+    shapes = {
+        "template": (512, 3),
+        "search": (1024, 3),
+        "size": (3,),
+        "motion": (4,),
+        "search_box": (7,),
+        "search_labels": (1024,),
+        "template_centers": (512, 3),
+        "template_labels": (512,),
+    }
     for k, shape in shapes.items():
         assert tuple(s[k].shape) == shape, k
         assert s[k].dtype == torch.float32
@@ -129,8 +136,7 @@ def test_size_jitter_is_an_exact_stretch_of_the_scene():
         world = box_to_world(s["search"], ref)
         real = s["search_labels"] > 0.5
         # undo the stretch in the GT box frame: every point is a point of the real scan ...
-        undone = box_to_world(
-            (world_to_box(world[real], gt) / stretch).astype(np.float64), gt)
+        undone = box_to_world((world_to_box(world[real], gt) / stretch).astype(np.float64), gt)
         scan = tr.points(t).astype(np.float64)
         nearest = np.abs(undone[:, None, :] - scan[None]).max(-1).min(1)
         assert nearest.max() < 1e-4

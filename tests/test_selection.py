@@ -24,7 +24,14 @@ def test_val_part_parse_round_trip_and_errors():
     assert ValPart.parse(" 13 : test ") == ValPart(13, "test")
     assert str(ValPart(3, "test")) == "3:test"
     assert [str(p) for p in DEFAULT_PARTS] == [
-        "0:val", "1:val", "1:test", "2:val", "2:test", "3:val", "3:test"]
+        "0:val",
+        "1:val",
+        "1:test",
+        "2:val",
+        "2:test",
+        "3:val",
+        "3:test",
+    ]
     for bad in ("2", "two:val", "2:dev", "-1:val", "2:val:x"):
         with pytest.raises(ValueError, match="validation part"):
             ValPart.parse(bad)
@@ -66,12 +73,12 @@ def tiny_config():
     # one env: a learned tracker's result per tracklet is then independent of which other
     # tracklets are evaluated (batched forwards can differ in the last bits with the batch layout,
     # and the closed loop amplifies that), so the check below can be exact
-    return SelectionConfig(preset="tiny", parts=(ValPart(0, "val"), ValPart(1, "test")),
-                           num_envs=1)
+    return SelectionConfig(preset="tiny", parts=(ValPart(0, "val"), ValPart(1, "test")), num_envs=1)
 
 
-def test_score_candidates_pools_observed_categories_and_ranks(tiny_config, tmp_path,
-                                                              one_torch_thread):
+def test_score_candidates_pools_observed_categories_and_ranks(
+    tiny_config, tmp_path, one_torch_thread
+):
     from envs.tracking_env import make_synthetic_env
     from training.evaluate import evaluate, load_tracker
 
@@ -82,8 +89,9 @@ def test_score_candidates_pools_observed_categories_and_ranks(tiny_config, tmp_p
         # independently: each part scored on the full setting (all categories), observed group
         entries = []
         for part in tiny_config.parts:
-            env = make_synthetic_env(preset="tiny", seed=part.world_seed, split=part.split,
-                                     setting="kitti-1")
+            env = make_synthetic_env(
+                preset="tiny", seed=part.world_seed, split=part.split, setting="kitti-1"
+            )
             full = evaluate(load_tracker(row["candidate"]), env, seed=0)["observed"]
             env.close()
             got = row["parts"][str(part)]
@@ -94,11 +102,13 @@ def test_score_candidates_pools_observed_categories_and_ranks(tiny_config, tmp_p
         frames = sum(e["frames"] for e in entries)
         assert row["frames"] == frames
         assert row["success"] == pytest.approx(
-            sum(e["success"] * e["frames"] for e in entries) / frames, abs=1e-9)
+            sum(e["success"] * e["frames"] for e in entries) / frames, abs=1e-9
+        )
 
 
-def test_score_candidates_reuses_its_cache_and_rescores_on_a_new_key(tiny_config, tmp_path,
-                                                                     monkeypatch, one_torch_thread):
+def test_score_candidates_reuses_its_cache_and_rescores_on_a_new_key(
+    tiny_config, tmp_path, monkeypatch, one_torch_thread
+):
     import training.evaluate
 
     first = score_candidates(["previous_box"], tiny_config, cache_dir=tmp_path)
@@ -147,8 +157,15 @@ def test_load_candidate_reads_training_checkpoints_and_names_bad_files(tmp_path)
     model = trackers.make("p2b", **tracker_config("p2b", "slim"))
     shadow = {k: v + 1.0 if v.is_floating_point() else v for k, v in model.state_dict().items()}
     config = {"tracker": "p2b", "model_size": "slim", "tracker_config": None}
-    torch.save({"format": CHECKPOINT_FORMAT, "model": model.state_dict(), "config": config,
-                "ema": {"shadow": shadow}}, tmp_path / "best.pt")
+    torch.save(
+        {
+            "format": CHECKPOINT_FORMAT,
+            "model": model.state_dict(),
+            "config": config,
+            "ema": {"shadow": shadow},
+        },
+        tmp_path / "best.pt",
+    )
     loaded = load_candidate(str(tmp_path / "best.pt"))
     for k, v in loaded.state_dict().items():  # the validated (averaged) weights
         assert torch.equal(v, shadow[k]), k

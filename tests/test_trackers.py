@@ -18,10 +18,16 @@ from trackers.toy import toy_batch
 
 NAMES = ["p2b", "bat", "gpt"]
 # the same code paths with narrow layers (fast tests); the contract tests use the full models
-TINY = {"backbone": {"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]], "out_channels": 64},
-        "head": {"vote_channels": 64}, "out_channels": 64}
-EXTRA = {"p2b": {"hidden_channels": 64}, "bat": {"hidden_channels": 64},
-         "gpt": {"node_channels": 32, "itc_channels": 32}}
+TINY = {
+    "backbone": {"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]], "out_channels": 64},
+    "head": {"vote_channels": 64},
+    "out_channels": 64,
+}
+EXTRA = {
+    "p2b": {"hidden_channels": 64},
+    "bat": {"hidden_channels": 64},
+    "gpt": {"node_channels": 32, "itc_channels": 32},
+}
 
 
 def tiny(name, **kw):
@@ -68,11 +74,20 @@ def test_forward_and_loss_contract(name, models, toy):
 
 
 def test_loss_weights_follow_the_papers(models):
-    assert models["p2b"].config.loss_weights == {"vote": 1.0, "seed": 0.2, "objectness": 1.5,
-                                                 "box": 0.2}
+    assert models["p2b"].config.loss_weights == {
+        "vote": 1.0,
+        "seed": 0.2,
+        "objectness": 1.5,
+        "box": 0.2,
+    }
     assert models["bat"].config.loss_weights["box_cloud"] == 1.0
-    assert models["gpt"].config.loss_weights == {"vote": 0.9, "template_vote": 0.1, "seed": 0.2,
-                                                 "box": 0.2, "objectness": 1.5}
+    assert models["gpt"].config.loss_weights == {
+        "vote": 0.9,
+        "template_vote": 0.1,
+        "seed": 0.2,
+        "box": 0.2,
+        "objectness": 1.5,
+    }
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -87,8 +102,9 @@ def test_gradients_reach_every_parameter(name, toy):
     box[:, :3] = out["proposal_centers"][:, 0].detach()
     targets["search_box"] = box
     model.loss(out, targets)["total"].sum().backward()
-    missing = [n for n, p in model.named_parameters()
-               if p.grad is None or not p.grad.abs().sum() > 0]
+    missing = [
+        n for n, p in model.named_parameters() if p.grad is None or not p.grad.abs().sum() > 0
+    ]
     assert not missing, missing
 
 
@@ -99,9 +115,13 @@ def test_proposal_labels_and_box_target():
     cfg = HeadConfig()
     centres = torch.tensor([[[0.1, 0, 0], [0.45, 0, 0], [2.0, 0, 0]]])
     gt = torch.tensor([[0.0, 0, 0, 4, 2, 1.5, math.radians(10)]])
-    out = {"votes": torch.zeros(1, 4, 3), "seed_logits": torch.zeros(1, 4),
-           "proposal_centers": centres, "scores": torch.tensor([[5.0, -50.0, -5.0]]),
-           "box_raw": torch.tensor([[[0.0, 0, 0, 10.0], [9, 9, 9, 9], [9, 9, 9, 9]]])}
+    out = {
+        "votes": torch.zeros(1, 4, 3),
+        "seed_logits": torch.zeros(1, 4),
+        "proposal_centers": centres,
+        "scores": torch.tensor([[5.0, -50.0, -5.0]]),
+        "box_raw": torch.tensor([[[0.0, 0, 0, 10.0], [9, 9, 9, 9], [9, 9, 9, 9]]]),
+    }
     losses = head_losses(out, gt, torch.zeros(1, 4), cfg)
     assert losses["box"].item() == pytest.approx(0.0, abs=1e-5)  # only the positive counts
     bce = torch.nn.functional.binary_cross_entropy_with_logits
@@ -152,8 +172,12 @@ def test_gpt_edgeconv_trick_equals_naive(use_itc):
     torch.manual_seed(3)
     fusion = GraphFusion(32, 16, 16, 40, k=5, use_itc=use_itc).eval()
     t_xyz, t_feat, s_feat = torch.randn(2, 12, 3), torch.randn(2, 12, 32), torch.randn(2, 20, 32)
-    torch.testing.assert_close(fusion(t_xyz, t_feat, s_feat)[0],
-                               gpt_naive(fusion, t_xyz, t_feat, s_feat), rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(
+        fusion(t_xyz, t_feat, s_feat)[0],
+        gpt_naive(fusion, t_xyz, t_feat, s_feat),
+        rtol=1e-4,
+        atol=1e-4,
+    )
 
 
 def test_set_abstraction_decomposed_and_ragged_equal_naive():
@@ -272,17 +296,22 @@ def test_make_rejects_bad_config():
 
 
 def test_make_accepts_nested_overrides():
-    model = trackers.make("p2b", sampling_seed=3, head={"num_proposals": 32},
-                          backbone={"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]],
-                                    "out_channels": 64},
-                          hidden_channels=64, out_channels=64)
+    model = trackers.make(
+        "p2b",
+        sampling_seed=3,
+        head={"num_proposals": 32},
+        backbone={"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]], "out_channels": 64},
+        hidden_channels=64,
+        out_channels=64,
+    )
     batch, _ = toy_batch(1, seed=1)
     out = model.eval()(batch)
     assert out["proposals"].shape == (1, 32, 4) and out["Z"].shape == (1, 128, 64)
 
 
-@pytest.mark.parametrize("name,suffix", [("p2b", ".safetensors"), ("bat", ".pt"),
-                                         ("gpt", ".safetensors")])
+@pytest.mark.parametrize(
+    "name,suffix", [("p2b", ".safetensors"), ("bat", ".pt"), ("gpt", ".safetensors")]
+)
 def test_save_load_round_trip(name, suffix, tmp_path, toy):
     torch.manual_seed(6)
     model = tiny(name, sampling_seed=11).train()
@@ -305,7 +334,7 @@ def test_load_errors(tmp_path, toy):
     with pytest.raises(ValueError, match="holds a 'p2b' checkpoint, not 'bat'"):
         trackers.load(path, expect="bat")
     corrupted = tmp_path / "bad.safetensors"
-    corrupted.write_bytes(path.read_bytes()[: 1000])
+    corrupted.write_bytes(path.read_bytes()[:1000])
     with pytest.raises(ValueError, match="corrupted"):
         trackers.load(corrupted)
     garbage = tmp_path / "garbage.pt"
@@ -316,8 +345,9 @@ def test_load_errors(tmp_path, toy):
     import pathlib
 
     evil = tmp_path / "evil.pt"
-    torch.save({"format": "pointtrack-tracker", "state_dict": {}, "x": pathlib.PurePosixPath("x")},
-               evil)
+    torch.save(
+        {"format": "pointtrack-tracker", "state_dict": {}, "x": pathlib.PurePosixPath("x")}, evil
+    )
     with pytest.raises(ValueError, match="weights-only"):
         trackers.load(evil)
     # weights that do not fit the stored config
@@ -326,8 +356,12 @@ def test_load_errors(tmp_path, toy):
     state = load_file(str(path))
     import json
 
-    meta = {"format": "pointtrack-tracker", "version": "1", "tracker": "p2b",
-            "config": json.dumps({"hidden_channels": 128})}
+    meta = {
+        "format": "pointtrack-tracker",
+        "version": "1",
+        "tracker": "p2b",
+        "config": json.dumps({"hidden_channels": 128}),
+    }
     mismatch = tmp_path / "mismatch.safetensors"
     save_file(state, str(mismatch), metadata=meta)
     with pytest.raises(ValueError, match="do not match"):
@@ -373,8 +407,13 @@ def test_fps_sampling_option_is_order_invariant(toy):
 
 def test_loss_weight_overrides_merge_with_the_papers(toy):
     model = tiny("bat", loss_weights={"box_cloud": 0.0, "vote": 2.0})
-    assert model.config.loss_weights == {"vote": 2.0, "seed": 0.2, "objectness": 1.5, "box": 0.2,
-                                         "box_cloud": 0.0}
+    assert model.config.loss_weights == {
+        "vote": 2.0,
+        "seed": 0.2,
+        "objectness": 1.5,
+        "box": 0.2,
+        "box_cloud": 0.0,
+    }
     gpt = tiny("gpt", use_itc=False)
     assert "template_vote" not in gpt.config.loss_weights
     losses = gpt.loss(gpt(toy[0]), toy[1])
@@ -411,8 +450,9 @@ def test_p2b_drops_repeated_template_seeds_exactly():
         fast = fusion(t_xyz[:1], t_feat[:1], s_feat[:1])
         fusion.fast_eval = False
         torch.testing.assert_close(fast, fusion(t_xyz[:1], t_feat[:1], s_feat[:1]))
-        torch.testing.assert_close(fast, p2b_naive(fusion, t_xyz[:1], t_feat[:1], s_feat[:1]),
-                                   rtol=1e-4, atol=1e-4)
+        torch.testing.assert_close(
+            fast, p2b_naive(fusion, t_xyz[:1], t_feat[:1], s_feat[:1]), rtol=1e-4, atol=1e-4
+        )
 
 
 # ---------------------------------------------------------------- eval fast paths vs reference
@@ -482,8 +522,9 @@ def test_eval_fast_paths_equal_the_plain_path_shipped_checkpoints(checkpoint, to
             assert torch.equal(xyz, ref_xyz) and torch.equal(idx, ref_idx)
             torch.testing.assert_close(feat, ref_feat, rtol=0, atol=1e-4)
         rows = slice(1, 2) if padded and checkpoint.startswith("gpt") else slice(None)
-        assert_outputs_close({k: v[rows] for k, v in out.items()},
-                             {k: v[rows] for k, v in ref.items()})
+        assert_outputs_close(
+            {k: v[rows] for k, v in out.items()}, {k: v[rows] for k, v in ref.items()}
+        )
 
 
 def test_p2b_knot_path_equals_dense_and_naive(monkeypatch):
@@ -524,8 +565,7 @@ def test_p2b_knots_are_the_kinks_of_the_tfa_mlp():
         t, values = knots(fusion.mlp, a, w, lo, hi, max_knots=10_000)
         mid = (t[..., 1:] + t[..., :-1]) / 2
         dense = pre_activation(fusion.mlp, a, w, mid, 2)
-    torch.testing.assert_close(dense, (values[:, :, 1:] + values[:, :, :-1]) / 2, rtol=0,
-                               atol=1e-5)
+    torch.testing.assert_close(dense, (values[:, :, 1:] + values[:, :, :-1]) / 2, rtol=0, atol=1e-5)
 
 
 def test_folded_batchnorm_cache_follows_weight_updates(toy):
@@ -538,13 +578,13 @@ def test_folded_batchnorm_cache_follows_weight_updates(toy):
         model.head.proposal.norms[0].running_var.mul_(2.0)
         after = model(toy[0])["scores"]
     assert not torch.allclose(before, after)
-    torch.testing.assert_close(after, reference_outputs(model, toy[0])["scores"], rtol=0,
-                               atol=1e-5)
+    torch.testing.assert_close(after, reference_outputs(model, toy[0])["scores"], rtol=0, atol=1e-5)
     # replacing a parameter's data (what .to() does) refolds too, without a version bump
     with torch.no_grad():
         norm = model.head.proposal.norms[0]
         norm.running_mean.data = norm.running_mean.data + 0.5
         replaced = model(toy[0])["scores"]
     assert not torch.allclose(after, replaced)
-    torch.testing.assert_close(replaced, reference_outputs(model, toy[0])["scores"], rtol=0,
-                               atol=1e-5)
+    torch.testing.assert_close(
+        replaced, reference_outputs(model, toy[0])["scores"], rtol=0, atol=1e-5
+    )

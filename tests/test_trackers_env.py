@@ -57,8 +57,10 @@ def test_eval_fast_paths_equal_the_plain_path_on_env_observations(name, env):
     while not terminated:
         observations.append(obs)
         obs, _, terminated, _, _ = env.step(model.act(obs))
-    batch = {k: torch.as_tensor(np.stack([o[k] for o in observations])).float()
-             for k in ("template", "search", "size", "motion")}
+    batch = {
+        k: torch.as_tensor(np.stack([o[k] for o in observations])).float()
+        for k in ("template", "search", "size", "motion")
+    }
     with torch.no_grad():
         out = model(batch)
     assert_outputs_close(out, reference_outputs(model, batch))

@@ -36,11 +36,13 @@ def test_outputs_bit_identical_to_the_recorded_reference(name, reference):
     np.testing.assert_array_equal(single, reference[f"{name}/act_single"])
     np.testing.assert_array_equal(model.act(obs), reference[f"{name}/act_single"])
     with torch.no_grad():
-        outs = [model({k: torch.from_numpy(v[i:i + 1]) for k, v in obs.items()})
-                for i in range(n)]
+        outs = [
+            model({k: torch.from_numpy(v[i : i + 1]) for k, v in obs.items()}) for i in range(n)
+        ]
     for key in ("proposals", "scores"):
-        np.testing.assert_array_equal(np.concatenate([o[key].numpy() for o in outs]),
-                                      reference[f"{name}/{key}"], err_msg=key)
+        np.testing.assert_array_equal(
+            np.concatenate([o[key].numpy() for o in outs]), reference[f"{name}/{key}"], err_msg=key
+        )
     z = np.ascontiguousarray(np.concatenate([o["Z"].numpy() for o in outs]))
     assert hashlib.sha256(z.tobytes()).hexdigest() == str(reference[f"{name}/Z_sha256"])
 
@@ -51,7 +53,9 @@ def test_batched_forward_equals_per_sample_forwards(name, reference):
     model = trackers.load(name)
     with torch.no_grad():
         batched = model(obs)
-        singles = [model({k: v[i:i + 1] for k, v in obs.items()}) for i in range(len(obs["size"]))]
+        singles = [
+            model({k: v[i : i + 1] for k, v in obs.items()}) for i in range(len(obs["size"]))
+        ]
     for key, value in batched.items():
         assert torch.equal(value, torch.cat([s[key] for s in singles])), key
 
@@ -64,8 +68,9 @@ def tiny_env():
 
 
 # P2B's are the ones the former batched forward failed here: they run by default, the rest as slow
-SLOW_UNLESS_P2B = [n if n.startswith("p2b") else pytest.param(n, marks=pytest.mark.slow)
-                   for n in CHECKPOINTS]
+SLOW_UNLESS_P2B = [
+    n if n.startswith("p2b") else pytest.param(n, marks=pytest.mark.slow) for n in CHECKPOINTS
+]
 
 
 @pytest.mark.parametrize("name", SLOW_UNLESS_P2B)

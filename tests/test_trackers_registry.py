@@ -21,8 +21,10 @@ from trackers.toy import toy_batch
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-SMALL = {"backbone": {"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]],
-                      "out_channels": 64}, "head": {"vote_channels": 32}}
+SMALL = {
+    "backbone": {"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]], "out_channels": 64},
+    "head": {"vote_channels": 32},
+}
 
 
 # ------------------------------------------------- a fourth matching tracker (docs/trackers.md)
@@ -55,6 +57,8 @@ class XCorr(MatchingTracker):
 
     def fuse(self, t_xyz, t_feat, s_xyz, s_feat, batch):
         return self.fusion(t_feat, s_feat), {}
+
+
 # ------------------------------------------------------------------------------------------------
 
 
@@ -82,8 +86,7 @@ def test_a_fourth_tracker_plugs_in(xcorr, tmp_path):
     path = trackers.save(model, tmp_path / "xcorr.safetensors")
     loaded = trackers.load(path, expect="xcorr")
     assert type(loaded) is XCorr and loaded.config == model.config
-    np.testing.assert_array_equal(loaded.act({k: v[0].numpy() for k, v in batch.items()}),
-                                  action)
+    np.testing.assert_array_equal(loaded.act({k: v[0].numpy() for k, v in batch.items()}), action)
     cfg = TrainConfig(tracker="xcorr", model_size="slim", out=str(tmp_path / "run")).validate()
     assert cfg.tracker == "xcorr"
 
@@ -119,8 +122,15 @@ def test_available_lists_kinds_in_order():
     assert trackers.available("learned") == ["p2b", "bat", "gpt", "m2track"]
     assert trackers.available("baseline") == ["previous_box", "constant_velocity"]
     shipped = trackers.available("checkpoint")
-    assert trackers.available() == ["p2b", "bat", "gpt", "m2track", "previous_box",
-                                    "constant_velocity", *shipped]
+    assert trackers.available() == [
+        "p2b",
+        "bat",
+        "gpt",
+        "m2track",
+        "previous_box",
+        "constant_velocity",
+        *shipped,
+    ]
     assert set(shipped) == {f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"}
     for name in ("p2b", "bat", "gpt"):  # the matching trackers (m2track: tests/test_m2track.py)
         assert trackers.size_config(name, "default") == {}
@@ -155,8 +165,11 @@ def test_modified_shipped_checkpoint_is_refused(shipped_copy):
     data[-100] ^= 0x01  # one bit inside the last tensor's weights: still a valid file
     path.write_bytes(bytes(data))
     bad = registry._sha256(path)
-    with pytest.raises(ValueError, match=rf"p2b-kitti1-u.safetensors: SHA-256 {bad} does not "
-                                         rf"match the manifest's {digest}"):
+    with pytest.raises(
+        ValueError,
+        match=rf"p2b-kitti1-u.safetensors: SHA-256 {bad} does not "
+        rf"match the manifest's {digest}",
+    ):
         trackers.load("p2b-kitti1-u")
     extra = shipped_copy / "extra.safetensors"
     shutil.copy(shipped_copy / "bat-kitti1-u.safetensors", extra)
@@ -179,8 +192,11 @@ def test_non_finite_weights_refuse_to_load_naming_the_tensor(value, tmp_path):
     state["head.proposal.linears.1.weight"][3, 2] = value
     path = tmp_path / "broken.safetensors"
     save_file(state, str(path), metadata=meta)
-    with pytest.raises(ValueError, match=r"broken.safetensors: tensor "
-                                         r"'head.proposal.linears.1.weight' has 1 NaN or inf"):
+    with pytest.raises(
+        ValueError,
+        match=r"broken.safetensors: tensor "
+        r"'head.proposal.linears.1.weight' has 1 NaN or inf",
+    ):
         trackers.load(path)
 
 
@@ -201,9 +217,12 @@ def test_old_checkpoint_config_keys_still_load(tmp_path):
 @pytest.mark.parametrize("name", ["p2b", "previous_box", "constant_velocity"])
 def test_act_on_an_empty_batch_is_an_empty_array(name):
     tracker = trackers.make(name, **(SMALL if name == "p2b" else {}))
-    obs = {"template": np.zeros((0, 512, 3), np.float32), "search": np.zeros((0, 1024, 3),
-           np.float32), "size": np.zeros((0, 3), np.float32), "motion": np.zeros((0, 4),
-                                                                                 np.float32)}
+    obs = {
+        "template": np.zeros((0, 512, 3), np.float32),
+        "search": np.zeros((0, 1024, 3), np.float32),
+        "size": np.zeros((0, 3), np.float32),
+        "motion": np.zeros((0, 4), np.float32),
+    }
     action = tracker.act(obs)
     assert action.shape == (0, 4) and action.dtype == np.float32
 
@@ -241,8 +260,12 @@ def test_mlp_methods_do_not_modify_their_input(fast, training, grad):
     w, b = mlp.linear_params(0)
     with torch.set_grad_enabled(grad):
         pre = torch.nn.functional.linear(x, w, b).detach()
-        for call in (lambda: mlp.finish(0, pre), lambda: mlp.forward_from(0, pre),
-                     lambda: mlp.hidden_from(0, pre, 2), lambda: mlp(x)):
+        for call in (
+            lambda: mlp.finish(0, pre),
+            lambda: mlp.forward_from(0, pre),
+            lambda: mlp.hidden_from(0, pre, 2),
+            lambda: mlp(x),
+        ):
             kept_pre, kept_x = pre.clone(), x.clone()
             call()
             assert torch.equal(pre, kept_pre) and torch.equal(x, kept_x)

@@ -8,17 +8,24 @@ import torch
 import trackers
 from trackers.toy import toy_batch
 
-TINY = {"backbone": {"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]], "out_channels": 64},
-        "head": {"vote_channels": 64}, "out_channels": 64}
-EXTRA = {"p2b": {"hidden_channels": 64}, "bat": {"hidden_channels": 64},
-         "gpt": {"node_channels": 32, "itc_channels": 32}}
+TINY = {
+    "backbone": {"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]], "out_channels": 64},
+    "head": {"vote_channels": 64},
+    "out_channels": 64,
+}
+EXTRA = {
+    "p2b": {"hidden_channels": 64},
+    "bat": {"hidden_channels": 64},
+    "gpt": {"node_channels": 32, "itc_channels": 32},
+}
 
 
 SLOW = pytest.mark.slow
 
 
 @pytest.mark.parametrize(
-    "name", ["p2b", pytest.param("bat", marks=SLOW), pytest.param("gpt", marks=SLOW)])
+    "name", ["p2b", pytest.param("bat", marks=SLOW), pytest.param("gpt", marks=SLOW)]
+)
 def test_one_batch_overfits(name, one_torch_thread):
     torch.manual_seed(0)
     model = trackers.make(name, **TINY, **EXTRA[name]).train()

@@ -46,8 +46,9 @@ def test_points_only_lost_or_closer(kind, level):
     # tests/test_weather_reference.py)
     pts, inten = make_scan(8000, seed=level)
     p = weather.parameter(kind, level)
-    out_p, out_i, src = run(kind, pts, inten, np.random.default_rng(1), p, return_source=True,
-                            fog_mode="lossy")
+    out_p, out_i, src = run(
+        kind, pts, inten, np.random.default_rng(1), p, return_source=True, fog_mode="lossy"
+    )
     assert out_p.dtype == np.float32 and out_i.dtype == np.float32
     assert len(out_p) == len(out_i) == len(src) <= len(pts)
     r_in = np.linalg.norm(pts[src], axis=1)
@@ -119,8 +120,14 @@ def test_intensity_falls_with_attenuation(kind):
     pts, inten = make_scan(10000, seed=6)
     means = []
     for level in (1, 5):
-        out_p, out_i, src = run(kind, pts, inten, np.random.default_rng(0),
-                                weather.parameter(kind, level), return_source=True)
+        out_p, out_i, src = run(
+            kind,
+            pts,
+            inten,
+            np.random.default_rng(0),
+            weather.parameter(kind, level),
+            return_source=True,
+        )
         # hard returns (not moved to a scatterer / fog)
         same = np.linalg.norm(out_p, axis=1) > np.linalg.norm(pts[src], axis=1) - 0.5
         assert np.all(out_i[same] <= inten[src][same] + 1e-7)

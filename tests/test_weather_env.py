@@ -45,8 +45,13 @@ def test_transform_keyed_by_scene_and_frame():
     t2 = pickle.loads(pickle.dumps(t))
     assert t2 == t and t2._cache == {}
     np.testing.assert_array_equal(t2(s, "0004/1", 10), a)
-    assert t.info == {"kind": "snow", "level": 5, "parameter": 7.29,
-                      "unit": "snowfall mm/h (w.e.)", "seed": 3}
+    assert t.info == {
+        "kind": "snow",
+        "level": 5,
+        "parameter": 7.29,
+        "unit": "snowfall mm/h (w.e.)",
+        "seed": 3,
+    }
     with pytest.raises(ValueError, match=r"\(N, 4\)"):
         t(s[:, :3], "0004/1", 12)
     with pytest.raises(ValueError, match="fog, rain, snow"):
@@ -140,7 +145,11 @@ def test_benchmark_runner_smoke(toy, tmp_path):
 
     lines = []
     res = run_weather_benchmark(
-        PreviousBox(), lambda: TrackingEnv(toy), "rain", (1, 5), out_dir=tmp_path,
+        PreviousBox(),
+        lambda: TrackingEnv(toy),
+        "rain",
+        (1, 5),
+        out_dir=tmp_path,
         log=lines.append,
     )
     assert len(lines) == 3

@@ -72,8 +72,9 @@ def test_fog_reference_matches_the_per_point_rule(level, scale):
 def test_fog_reference_relocates_and_never_removes(level):
     pts, inten = make_scan(5000, seed=10 + level)
     inten[:50] = 0.0  # returns the sensor reported with intensity 0 stay too
-    out_p, out_i, src = fog_alpha(pts, inten, np.random.default_rng(0),
-                                  weather.parameter("fog", level), return_source=True)
+    out_p, out_i, src = fog_alpha(
+        pts, inten, np.random.default_rng(0), weather.parameter("fog", level), return_source=True
+    )
     assert len(out_p) == len(pts) and np.array_equal(src, np.arange(len(pts)))
     moved = np.any(out_p != pts, axis=1)
     assert moved.any()
@@ -88,8 +89,9 @@ def test_fog_reference_relocates_and_never_removes(level):
     assert np.all(r_out[moved] < dist.max() + 10.0)
     # the same input through the lossy rule does remove points at the heavy levels
     if level == 5:
-        lossy = fog_alpha(pts, inten, np.random.default_rng(0), weather.parameter("fog", 5),
-                          mode="lossy")[0]
+        lossy = fog_alpha(
+            pts, inten, np.random.default_rng(0), weather.parameter("fog", 5), mode="lossy"
+        )[0]
         assert len(lossy) < len(pts)
 
 

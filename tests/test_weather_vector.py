@@ -15,7 +15,8 @@ def _same(a, b) -> None:
     """Two benchmark results agree on every score, per tracklet and in the analysis."""
     assert a["kinds"] == b["kinds"] and a["levels"] == b["levels"]
     reports = [(a["clean"], b["clean"])] + [
-        (a["weather"][k][lv], b["weather"][k][lv]) for k in a["kinds"] for lv in a["levels"]]
+        (a["weather"][k][lv], b["weather"][k][lv]) for k in a["kinds"] for lv in a["levels"]
+    ]
     for ra, rb in reports:
         assert ra["per_tracklet"] == rb["per_tracklet"]
         assert ra["frames"] == rb["frames"] and ra["tracklets"] == rb["tracklets"]
@@ -51,14 +52,16 @@ def test_vector_with_one_env_equals_single_env_tiny_world(one_torch_thread):
     subset = [0, 5]
     kw = {"tracklets": subset, "seed": 0, "weather_seed": 3}
     single = run_weather_benchmark(tracker, base.clone, ("fog", "snow"), (5,), **kw)
-    vector = run_weather_benchmark(tracker, base.clone, ("fog", "snow"), (5,), num_envs=1,
-                                   **kw)
+    vector = run_weather_benchmark(tracker, base.clone, ("fog", "snow"), (5,), num_envs=1, **kw)
     _same(single, vector)
     assert vector["num_envs"] == 1 and single["fog_mode"] == "reference"
     assert vector["clean"]["env"]["num_envs"] == 1  # really the vector runner
     # the weather changed something, so the comparison is not between two clean runs
-    assert any(single["weather"][k][lv]["per_tracklet"] != single["clean"]["per_tracklet"]
-               for k in ("fog", "snow") for lv in (5,))
+    assert any(
+        single["weather"][k][lv]["per_tracklet"] != single["clean"]["per_tracklet"]
+        for k in ("fog", "snow")
+        for lv in (5,)
+    )
 
 
 def test_vector_equals_single_env_for_a_deterministic_tracker():
@@ -66,16 +69,20 @@ def test_vector_equals_single_env_for_a_deterministic_tracker():
     (the extra episodes of finished sub-envs must not leak into the analysis)."""
     from trackers.baselines import PreviousBox
 
-    toy = make_toy_dataset(categories=("Car", "Pedestrian", "Van", "Cyclist", "Truck"),
-                           num_frames=(6, 3, 5, 4, 7), num_clutter=2000)
+    toy = make_toy_dataset(
+        categories=("Car", "Pedestrian", "Van", "Cyclist", "Truck"),
+        num_frames=(6, 3, 5, 4, 7),
+        num_clutter=2000,
+    )
 
     def make_env():
         return TrackingEnv(toy)
 
     single = run_weather_benchmark(PreviousBox(), make_env, "rain", (1, 5), weather_seed=1)
     for n in (2, 3, 7):  # 7 sub-envs for 5 tracklets: some sub-envs have nothing to do
-        vector = run_weather_benchmark(PreviousBox(), make_env, "rain", (1, 5), weather_seed=1,
-                                       num_envs=n)
+        vector = run_weather_benchmark(
+            PreviousBox(), make_env, "rain", (1, 5), weather_seed=1, num_envs=n
+        )
         _same(single, vector)
         assert vector["clean"]["env"]["num_envs"] == n
         frames = single["analysis"]["rain"][5]["frames"]
@@ -88,11 +95,13 @@ def test_bad_num_envs_and_fog_mode():
     toy = make_toy_dataset(categories=("Car",), num_frames=3, num_clutter=500)
     for bad in (0, -1, 1.5, True):
         with pytest.raises(ValueError, match="num_envs"):
-            run_weather_benchmark(PreviousBox(), lambda: TrackingEnv(toy), "fog", (1,),
-                                  num_envs=bad)
+            run_weather_benchmark(
+                PreviousBox(), lambda: TrackingEnv(toy), "fog", (1,), num_envs=bad
+            )
     with pytest.raises(ValueError, match="reference, lossy"):
-        run_weather_benchmark(PreviousBox(), lambda: TrackingEnv(toy), "fog", (1,),
-                              fog_mode="shifted")
+        run_weather_benchmark(
+            PreviousBox(), lambda: TrackingEnv(toy), "fog", (1,), fog_mode="shifted"
+        )
 
 
 def test_cli_weather_with_num_envs(tmp_path, capsys):
@@ -103,9 +112,28 @@ def test_cli_weather_with_num_envs(tmp_path, capsys):
 
     from training.cli import main
 
-    rc = main(["eval", "--tracker", "previous_box", "--preset", "tiny", "--weather", "fog,snow",
-               "--weather-levels", "5", "--num-envs", "3", "--max-tracklets", "4",
-               "--fog-mode", "lossy", "--no-progress", "--out", str(tmp_path)])
+    rc = main(
+        [
+            "eval",
+            "--tracker",
+            "previous_box",
+            "--preset",
+            "tiny",
+            "--weather",
+            "fog,snow",
+            "--weather-levels",
+            "5",
+            "--num-envs",
+            "3",
+            "--max-tracklets",
+            "4",
+            "--fog-mode",
+            "lossy",
+            "--no-progress",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert rc == 0
     assert "Fog" in capsys.readouterr().out
     res = json.loads((tmp_path / "weather_previous_box" / "weather.json").read_text())

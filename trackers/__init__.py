@@ -24,5 +24,13 @@ from trackers.registry import (
 from trackers import p2b, bat, gpt, m2track, baselines  # noqa: E402, F401
 # isort: on
 
-__all__ = ["available", "load", "make", "register", "save", "size_config", "tracker_class",
-           "unregister"]
+__all__ = [
+    "available",
+    "load",
+    "make",
+    "register",
+    "save",
+    "size_config",
+    "tracker_class",
+    "unregister",
+]

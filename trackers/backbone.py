@@ -74,16 +74,23 @@ class SetAbstraction(nn.Module):
     Centres are the first ``n`` points; neighbours by :func:`trackers.ops.ball_query`.
     """
 
-    def __init__(self, in_channels: int, channels: tuple[int, ...], radius: float, k: int,
-                 ragged_train: bool = False) -> None:
+    def __init__(
+        self,
+        in_channels: int,
+        channels: tuple[int, ...],
+        radius: float,
+        k: int,
+        ragged_train: bool = False,
+    ) -> None:
         super().__init__()
         self.radius, self.k = radius, k
         self.ragged_train = ragged_train
         self.fast_eval = True  # eval: ragged groups (see the module doc)
         self.mlp = MLP([in_channels + 3, *channels])
 
-    def point_terms(self, xyz: torch.Tensor, feats: torch.Tensor | None,
-                    centres: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def point_terms(
+        self, xyz: torch.Tensor, feats: torch.Tensor | None, centres: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """First-layer parts: per point ``(B, N, C1)`` and per centre ``(B, n, C1)``."""
         w, b = self.mlp.linear_params(0)
         wx = w[:, :3]
@@ -92,8 +99,13 @@ class SetAbstraction(nn.Module):
         per_centre = centres @ wx.t()
         return per_point, per_centre
 
-    def forward(self, xyz: torch.Tensor, feats: torch.Tensor | None, n: int,
-                first: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self,
+        xyz: torch.Tensor,
+        feats: torch.Tensor | None,
+        n: int,
+        first: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """``first (B, N)``: :func:`trackers.ops.first_copy` of ``xyz`` (ragged path only), to
         evaluate each distinct centre and neighbour once."""
         if self.ragged_train if self.training else self.fast_eval:
@@ -104,8 +116,13 @@ class SetAbstraction(nn.Module):
         pre = ops.group(per_point, idx) - per_centre[:, :, None, :]  # (B, n, k, C1)
         return centres, self.mlp.forward_from(0, pre).amax(dim=2)
 
-    def ragged(self, xyzs: list[torch.Tensor], feats: list[torch.Tensor | None], ns: list[int],
-               firsts: list[torch.Tensor | None]) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    def ragged(
+        self,
+        xyzs: list[torch.Tensor],
+        feats: list[torch.Tensor | None],
+        ns: list[int],
+        firsts: list[torch.Tensor | None],
+    ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """The layer on several clouds ``(B, N_i, 3)`` (same ``B``, e.g. template and search) at
         once over the real ball-query hits only: one MLP evaluation for all their groups.
 
@@ -116,8 +133,9 @@ class SetAbstraction(nn.Module):
         """
         b = xyzs[0].shape[0]
         centres = [xyz[:, :n] for xyz, n in zip(xyzs, ns, strict=True)]
-        terms = [self.point_terms(xyz, f, c) for xyz, f, c in zip(xyzs, feats, centres,
-                                                                   strict=True)]
+        terms = [
+            self.point_terms(xyz, f, c) for xyz, f, c in zip(xyzs, feats, centres, strict=True)
+        ]
         groups, points = [], []
         group_start = point_start = 0
         for xyz, c, first in zip(xyzs, centres, firsts, strict=True):
@@ -125,7 +143,7 @@ class SetAbstraction(nn.Module):
             if first is not None:  # first copies only (of the centre and of the hit)
                 n_pts = xyz.shape[1]
                 own = first == torch.arange(n_pts, device=first.device)  # (B, N)
-                keep = own.flatten()[point] & own[:, :c.shape[1]].flatten()[group]
+                keep = own.flatten()[point] & own[:, : c.shape[1]].flatten()[group]
                 group, point = group[keep], point[keep]
             groups.append(group + group_start)
             points.append(point + point_start)
@@ -137,7 +155,7 @@ class SetAbstraction(nn.Module):
         results, start = [], 0
         for c, first in zip(centres, firsts, strict=True):
             n = c.shape[1]
-            rows = out[0, start:start + b * n]
+            rows = out[0, start : start + b * n]
             if first is not None:  # copies of a centre take their first copy's features
                 src = first[:, :n] + (torch.arange(b, device=first.device) * n)[:, None]
                 rows = rows.index_select(0, src.flatten())
@@ -157,7 +175,8 @@ class Backbone(nn.Module):
         layers, c_in = [], 0
         for radius, chans in zip(config.radii, config.channels, strict=True):
             layers.append(
-                SetAbstraction(c_in, chans, radius, config.neighbours, config.ragged_train))
+                SetAbstraction(c_in, chans, radius, config.neighbours, config.ragged_train)
+            )
             c_in = chans[-1]
         self.layers = nn.ModuleList(layers)
         self.out = nn.Linear(c_in, config.out_channels)
@@ -167,18 +186,21 @@ class Backbone(nn.Module):
     def out_channels(self) -> int:
         return self.config.out_channels
 
-    def forward(self, points: torch.Tensor, order: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, points: torch.Tensor, order: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         return self.forward_many([points], [order])[0]
 
-    def forward_many(self, clouds: list[torch.Tensor], orders: list[torch.Tensor]
-                     ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
+    def forward_many(
+        self, clouds: list[torch.Tensor], orders: list[torch.Tensor]
+    ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]:
         """:meth:`forward` of several clouds ``(B, N_i, 3)`` (same ``B``): one evaluation for all
         of them on the fast eval path (fewer, larger operations: the template and the search
         region at batch 1), one call each otherwise (training keeps the BatchNorm statistics of
         each cloud apart)."""
-        ragged = not self.training and self.fast_eval and all(layer.fast_eval
-                                                              for layer in self.layers)
+        ragged = (
+            not self.training and self.fast_eval and all(layer.fast_eval for layer in self.layers)
+        )
         if not ragged and len(clouds) > 1:
             return [self.forward_many([p], [o])[0] for p, o in zip(clouds, orders, strict=True)]
         ordered = [self._ordered(p, o) for p, o in zip(clouds, orders, strict=True)]
@@ -190,8 +212,15 @@ class Backbone(nn.Module):
         for layer in self.layers:
             ns = [n // 2 for n in ns]
             if ragged:  # layer inputs are prefixes of xyz and a first copy precedes its copies
-                outs = layer.ragged(xyzs, feats, ns, [None if f is None else f[:, :x.shape[1]]
-                                                      for f, x in zip(firsts, xyzs, strict=True)])
+                outs = layer.ragged(
+                    xyzs,
+                    feats,
+                    ns,
+                    [
+                        None if f is None else f[:, : x.shape[1]]
+                        for f, x in zip(firsts, xyzs, strict=True)
+                    ],
+                )
             else:
                 outs = [layer(xyzs[0], feats[0], ns[0])]
             xyzs, feats = [o[0] for o in outs], [o[1] for o in outs]
@@ -199,12 +228,13 @@ class Backbone(nn.Module):
         out = self.out(torch.cat([f.reshape(-1, f.shape[-1]) for f in feats]))
         results, start = [], 0
         for xyz, order, n in zip(xyzs, orders, ns, strict=True):
-            results.append((xyz, out[start:start + b * n].view(b, n, -1), order[:, :n]))
+            results.append((xyz, out[start : start + b * n].view(b, n, -1), order[:, :n]))
             start += b * n
         return results
 
-    def _ordered(self, points: torch.Tensor, order: torch.Tensor
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    def _ordered(
+        self, points: torch.Tensor, order: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The points in sampling order and that order (FPS first when ``sampling="fps"``)."""
         if self.config.sampling == "fps":  # FPS picks first (in FPS order), then the rest
             first = ops.farthest_point_sample(ops.gather(points, order), points.shape[1] // 2)

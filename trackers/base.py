@@ -56,8 +56,16 @@ from trackers.config import config_from_dict, config_to_dict
 from trackers.head import HeadConfig, VotingHead, head_losses
 from trackers.layers import set_fast_eval
 
-__all__ = ["DEFAULT_MAX_ACTION", "OBS_SHAPES", "SLIM_BACKBONE", "MatchingConfig",
-           "MatchingTracker", "Tracker", "TrackerConfig", "prepare_observation"]
+__all__ = [
+    "DEFAULT_MAX_ACTION",
+    "OBS_SHAPES",
+    "SLIM_BACKBONE",
+    "MatchingConfig",
+    "MatchingTracker",
+    "Tracker",
+    "TrackerConfig",
+    "prepare_observation",
+]
 
 #: The env's default action bound ``a_max`` (metres, metres, metres, radians).
 DEFAULT_MAX_ACTION = (5.0, 5.0, 3.0, math.pi)
@@ -73,8 +81,12 @@ OBS_SHAPES: dict[str, tuple[int, ...]] = {
 #: The slim backbone of the shipped checkpoints (the ``"slim"`` size of P2B, BAT and GPT): about
 #: 6x cheaper per training step than the papers' widths, same architecture and inputs; ragged
 #: training (BatchNorm statistics over real ball-query hits only) saves another ~30 % on CPU.
-SLIM_BACKBONE: dict[str, Any] = {"channels": [[32, 32, 64], [64, 64, 128], [128, 128, 128]],
-                                 "out_channels": 128, "neighbours": 16, "ragged_train": True}
+SLIM_BACKBONE: dict[str, Any] = {
+    "channels": [[32, 32, 64], [64, 64, 128], [128, 128, 128]],
+    "out_channels": 128,
+    "neighbours": 16,
+    "ragged_train": True,
+}
 
 
 @dataclass
@@ -97,15 +109,17 @@ class MatchingConfig(TrackerConfig):
     head: HeadConfig = field(default_factory=HeadConfig)
 
 
-def prepare_observation(obs: Any, device: torch.device | str = "cpu"
-                        ) -> tuple[dict[str, torch.Tensor], bool]:
+def prepare_observation(
+    obs: Any, device: torch.device | str = "cpu"
+) -> tuple[dict[str, torch.Tensor], bool]:
     """Validate one observation or a batch -> (float32 tensors ``(B, ...)`` on ``device``,
     ``single``). Raises ``KeyError``/``TypeError``/``ValueError`` naming the key and the expected
     shape or dtype.
     """
     if not isinstance(obs, Mapping):
-        raise TypeError(f"observation must be a dict with keys {list(OBS_SHAPES)}, "
-                        f"got {type(obs).__name__}")
+        raise TypeError(
+            f"observation must be a dict with keys {list(OBS_SHAPES)}, got {type(obs).__name__}"
+        )
     missing = [k for k in OBS_SHAPES if k not in obs]
     if missing:
         raise KeyError(f"observation is missing key(s) {missing}; expected {_expected()}")
@@ -116,33 +130,42 @@ def prepare_observation(obs: Any, device: torch.device | str = "cpu"
         value = obs[key]
         if isinstance(value, torch.Tensor):
             if not value.is_floating_point():
-                raise TypeError(f"observation[{key!r}] has dtype {value.dtype}; expected a float "
-                                f"tensor (float32) of shape {shape} or (B, *{shape})")
+                raise TypeError(
+                    f"observation[{key!r}] has dtype {value.dtype}; expected a float "
+                    f"tensor (float32) of shape {shape} or (B, *{shape})"
+                )
             tensor = value.detach()
         else:
             arr = np.asarray(value)
             if arr.dtype.kind != "f":
-                raise TypeError(f"observation[{key!r}] has dtype {arr.dtype}; expected float32 "
-                                f"of shape {shape} or (B, *{shape})")
+                raise TypeError(
+                    f"observation[{key!r}] has dtype {arr.dtype}; expected float32 "
+                    f"of shape {shape} or (B, *{shape})"
+                )
             tensor = torch.from_numpy(np.ascontiguousarray(arr))
         if tuple(tensor.shape) == shape:
             is_single = True
         elif tensor.dim() == len(shape) + 1 and tuple(tensor.shape[1:]) == shape:
             is_single = False
         else:
-            raise ValueError(f"observation[{key!r}] has shape {tuple(tensor.shape)}; expected "
-                             f"{shape} or (B, *{shape})")
+            raise ValueError(
+                f"observation[{key!r}] has shape {tuple(tensor.shape)}; expected "
+                f"{shape} or (B, *{shape})"
+            )
         if single is None:
             single = is_single
         elif single != is_single:
-            raise ValueError(f"observation[{key!r}] has shape {tuple(tensor.shape)}: mixes single "
-                             f"and batched entries; expected {shape} for one observation")
+            raise ValueError(
+                f"observation[{key!r}] has shape {tuple(tensor.shape)}: mixes single "
+                f"and batched entries; expected {shape} for one observation"
+            )
         tensor = tensor.unsqueeze(0) if is_single else tensor
         if batch is None:
             batch = tensor.shape[0]
         elif tensor.shape[0] != batch:
-            raise ValueError(f"observation[{key!r}] has batch size {tensor.shape[0]}, other keys "
-                             f"have {batch}")
+            raise ValueError(
+                f"observation[{key!r}] has batch size {tensor.shape[0]}, other keys have {batch}"
+            )
         tensor = tensor.to(device=device, dtype=torch.float32)
         if not torch.isfinite(tensor).all():
             raise ValueError(f"observation[{key!r}] contains NaN or inf values")
@@ -178,8 +201,10 @@ class Tracker(nn.Module):
         cfg = config_from_dict(self.config_class, config, where=f"{self.name} config")
         unknown = sorted(set(cfg.loss_weights) - set(self.default_loss_weights))
         if unknown:
-            raise ValueError(f"{self.name} config: unknown loss term(s) {unknown}; valid: "
-                             f"{sorted(self.default_loss_weights)}")
+            raise ValueError(
+                f"{self.name} config: unknown loss term(s) {unknown}; valid: "
+                f"{sorted(self.default_loss_weights)}"
+            )
         # given weights override the paper's; terms not given keep the paper's weight
         cfg.loss_weights = {**self.default_loss_weights, **cfg.loss_weights}
         self.config = cfg
@@ -208,29 +233,37 @@ class Tracker(nn.Module):
     def device(self) -> torch.device:
         return next(self.parameters()).device
 
-    def forward(self, batch: Mapping[str, torch.Tensor],
-                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    def forward(
+        self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:
         """:meth:`forward_batch`, one sample at a time in eval mode (:attr:`batch_invariant`)."""
         for key in ("template", "search"):
             value = batch[key]
             if value.dim() != 3 or value.shape[-1] != 3:
-                raise ValueError(f"batch[{key!r}] has shape {tuple(value.shape)}; expected "
-                                 f"(B, {OBS_SHAPES[key][0]}, 3)")
+                raise ValueError(
+                    f"batch[{key!r}] has shape {tuple(value.shape)}; expected "
+                    f"(B, {OBS_SHAPES[key][0]}, 3)"
+                )
         b = batch["template"].shape[0]
         if self.training or not self.batch_invariant or b <= 1:
             return self.forward_batch(batch, generator)
-        parts = [self.forward_batch({k: v[i:i + 1] if _batched(v, b) else v
-                                     for k, v in batch.items()}, generator) for i in range(b)]
+        parts = [
+            self.forward_batch(
+                {k: v[i : i + 1] if _batched(v, b) else v for k, v in batch.items()}, generator
+            )
+            for i in range(b)
+        ]
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
-    def forward_batch(self, batch: Mapping[str, torch.Tensor],
-                      generator: torch.Generator | None = None
-                      ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
+    def forward_batch(
+        self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
         """The batched forward (see the module doc for inputs and outputs)."""
         raise NotImplementedError
 
-    def loss(self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
-             ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
+    def loss(
+        self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
         """Per-sample losses ``(B,)``: the named terms and their weighted ``total``."""
         raise NotImplementedError
 
@@ -238,8 +271,10 @@ class Tracker(nn.Module):
         """The per-sample features ``(B, M, D)`` or ``(B, D)`` that the decorrelation weighting
         (-W, :mod:`training.weighting`) decorrelates; by default the fused features ``Z``."""
         if "Z" not in outputs:
-            raise KeyError(f"{self.name}: outputs have no 'Z'; override Tracker.features to "
-                           f"say which output the sample weighting decorrelates")
+            raise KeyError(
+                f"{self.name}: outputs have no 'Z'; override Tracker.features to "
+                f"say which output the sample weighting decorrelates"
+            )
         return outputs["Z"]
 
     @torch.no_grad()
@@ -257,8 +292,9 @@ class Tracker(nn.Module):
             self.train(was_training)
         best = out["scores"].argmax(dim=1)
         action = out["proposals"][torch.arange(len(best), device=best.device), best]
-        empty = ((batch["template"] == 0).flatten(1).all(1)
-                 | (batch["search"] == 0).flatten(1).all(1))
+        empty = (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(
+            1
+        )
         action = torch.where(empty[:, None], torch.zeros_like(action), action)
         action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
         a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
@@ -290,55 +326,76 @@ class MatchingTracker(Tracker):
         self.fusion, self.fused_channels = self.build_fusion(self.backbone.out_channels)
         self.head = VotingHead(self.fused_channels, self.config.head)
 
-    def build_fusion(self, in_channels: int
-                     ) -> tuple[nn.Module, int]:  # pragma: no cover - abstract
+    def build_fusion(
+        self, in_channels: int
+    ) -> tuple[nn.Module, int]:  # pragma: no cover - abstract
         """The fusion module for backbone features of ``in_channels`` and its output channels."""
         raise NotImplementedError
 
-    def fuse(self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_xyz: torch.Tensor,
-             s_feat: torch.Tensor, batch: dict[str, torch.Tensor]
-             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # pragma: no cover - abstract
+    def fuse(
+        self,
+        t_xyz: torch.Tensor,
+        t_feat: torch.Tensor,
+        s_xyz: torch.Tensor,
+        s_feat: torch.Tensor,
+        batch: dict[str, torch.Tensor],
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:  # pragma: no cover - abstract
         """Seeds ``(B, M_T, 3)``, ``(B, M_T, D)``, ``(B, M_S, 3)``, ``(B, M_S, D)`` -> ``Z (B,
         M_S, D')`` and extra outputs (each with leading dimension ``B``)."""
         raise NotImplementedError
 
-    def extra_losses(self, outputs: dict[str, torch.Tensor], targets: dict[str, torch.Tensor],
-                     seed_labels: torch.Tensor) -> dict[str, torch.Tensor]:
+    def extra_losses(
+        self,
+        outputs: dict[str, torch.Tensor],
+        targets: dict[str, torch.Tensor],
+        seed_labels: torch.Tensor,
+    ) -> dict[str, torch.Tensor]:
         """Tracker-specific per-sample loss terms ``(B,)`` (none by default)."""
         return {}
 
-    def sampling_orders(self, template: torch.Tensor, search: torch.Tensor,
-                        generator: torch.Generator | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def sampling_orders(
+        self, template: torch.Tensor, search: torch.Tensor, generator: torch.Generator | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Point orders for the backbone: random in training, hash-based in eval."""
         if self.training:
             gen = generator if generator is not None else self.generator
-            return (ops.random_order(template.shape[0], template.shape[1], gen, template.device),
-                    ops.random_order(search.shape[0], search.shape[1], gen, search.device))
+            return (
+                ops.random_order(template.shape[0], template.shape[1], gen, template.device),
+                ops.random_order(search.shape[0], search.shape[1], gen, search.device),
+            )
         seed = int(self.config.sampling_seed)
         order_t, order_s = ops.hash_orders([template, search], [seed, seed + 1])
         return order_t, order_s
 
-    def forward_batch(self, batch: Mapping[str, torch.Tensor],
-                      generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    def forward_batch(
+        self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:
         template, search = batch["template"], batch["search"]
         order_t, order_s = self.sampling_orders(template, search, generator)
         (t_xyz, t_feat, t_idx), (s_xyz, s_feat, s_idx) = self.backbone.forward_many(
-            [template, search], [order_t, order_s])
+            [template, search], [order_t, order_s]
+        )
         z, extra = self.fuse(t_xyz, t_feat, s_xyz, s_feat, dict(batch))
         out = self.head(s_xyz, z)
-        out.update(Z=z, seed_xyz=s_xyz, seed_idx=s_idx, template_seed_xyz=t_xyz,
-                   template_seed_idx=t_idx, **extra)
+        out.update(
+            Z=z,
+            seed_xyz=s_xyz,
+            seed_idx=s_idx,
+            template_seed_xyz=t_xyz,
+            template_seed_idx=t_idx,
+            **extra,
+        )
         return out
 
-    def loss(self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
-             ) -> dict[str, torch.Tensor]:
+    def loss(
+        self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
         """Per-sample losses ``(B,)``: the head's terms, :meth:`extra_losses` and their
         weighted ``total``."""
         if "search_box" not in targets or "search_labels" not in targets:
             raise KeyError("targets need 'search_box' (B, 7) and 'search_labels' (B, N_S)")
         seed_labels = torch.gather(targets["search_labels"].float(), 1, outputs["seed_idx"])
-        terms = head_losses(outputs, targets["search_box"].float(), seed_labels,
-                            self.config.head)
+        terms = head_losses(outputs, targets["search_box"].float(), seed_labels, self.config.head)
         terms.update(self.extra_losses(outputs, dict(targets), seed_labels))
         weights = self.config.loss_weights
         total = sum(weights[k] * terms[k] for k in weights)

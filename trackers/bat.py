@@ -68,8 +68,14 @@ class BoxAwareFusion(nn.Module):
         self.mlp = MLP([3 + 9 + d + extra, hidden, hidden, hidden])
         self.post = MLP([hidden, hidden, out], last_activation=False)
 
-    def forward(self, t_xyz: torch.Tensor, t_feat: torch.Tensor, t_bc: torch.Tensor,
-                s_xyz: torch.Tensor, s_feat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self,
+        t_xyz: torch.Tensor,
+        t_feat: torch.Tensor,
+        t_bc: torch.Tensor,
+        s_xyz: torch.Tensor,
+        s_feat: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         s_bc = self.bc_head(torch.cat([s_xyz, s_feat], dim=-1))  # (B, M_S, 9)
         k = min(self.k, t_xyz.shape[1])
         _, nbr = ops.knn(k, s_bc.detach(), t_bc)  # (B, M_S, k) template seeds
@@ -78,7 +84,7 @@ class BoxAwareFusion(nn.Module):
         per_t = F.linear(t_in, w[:, : t_in.shape[-1]], b)  # (B, M_T, H)
         pre = ops.group(per_t, nbr)  # (B, M_S, k, H)
         if self.use_search_feature:
-            pre = pre + (s_feat @ w[:, t_in.shape[-1]:].t())[:, :, None, :]
+            pre = pre + (s_feat @ w[:, t_in.shape[-1] :].t())[:, :, None, :]
         z = self.post(self.mlp.forward_from(0, pre).amax(dim=2))
         return z, s_bc
 
@@ -89,19 +95,29 @@ class BAT(MatchingTracker):
 
     config_class = BATConfig
     default_loss_weights: ClassVar[dict[str, float]] = {
-        "vote": 1.0, "seed": 0.2, "objectness": 1.5, "box": 0.2, "box_cloud": 1.0}
+        "vote": 1.0,
+        "seed": 0.2,
+        "objectness": 1.5,
+        "box": 0.2,
+        "box_cloud": 1.0,
+    }
     sizes: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
-        "slim": {"backbone": SLIM_BACKBONE, "hidden_channels": 64, "out_channels": 128,
-                 "head": {"vote_channels": 128}},
+        "slim": {
+            "backbone": SLIM_BACKBONE,
+            "hidden_channels": 64,
+            "out_channels": 128,
+            "head": {"vote_channels": 128},
+        },
     }
 
     def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:
         cfg = self.config
         if cfg.k < 1:
             raise ValueError(f"bat config: k must be >= 1, got {cfg.k}")
-        fusion = BoxAwareFusion(in_channels, cfg.hidden_channels, cfg.out_channels, cfg.k,
-                                cfg.use_search_feature)
+        fusion = BoxAwareFusion(
+            in_channels, cfg.hidden_channels, cfg.out_channels, cfg.k, cfg.use_search_feature
+        )
         return fusion, cfg.out_channels
 
     def fuse(self, t_xyz, t_feat, s_xyz, s_feat, batch):

@@ -25,7 +25,8 @@ def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
         return data
     if not isinstance(data, dict):
         raise ValueError(
-            f"{where}: expected a mapping for {cls.__name__}, got {type(data).__name__}")
+            f"{where}: expected a mapping for {cls.__name__}, got {type(data).__name__}"
+        )
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls) if f.init}
     unknown = sorted(set(data) - names)

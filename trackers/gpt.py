@@ -64,8 +64,9 @@ class GraphFusion(nn.Module):
         clue = itc if use_itc else node
         self.edge = MLP([3 + node + clue, out, out, out])
 
-    def forward(self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_feat: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def forward(
+        self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_feat: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         f_t, f_s = self.phi(t_feat), self.varphi(s_feat)  # (B, M_T, n), (B, M_S, n)
         votes = None
         if self.use_itc:
@@ -79,7 +80,7 @@ class GraphFusion(nn.Module):
         w, b = self.edge.linear_params(0)
         n = self.node
         per_t = F.linear(torch.cat([t_xyz, f_t, clue], dim=-1), w, b)  # (B, M_T, out)
-        per_s = f_s @ w[:, 3:3 + n].t()  # (B, M_S, out)
+        per_s = f_s @ w[:, 3 : 3 + n].t()  # (B, M_S, out)
         pre = ops.group(per_t, nbr) - per_s[:, :, None, :]  # (B, M_S, k, out)
         return self.edge.forward_from(0, pre).amax(dim=2), votes
 
@@ -90,11 +91,21 @@ class GPT(MatchingTracker):
 
     config_class = GPTConfig
     default_loss_weights: ClassVar[dict[str, float]] = {
-        "vote": 0.9, "template_vote": 0.1, "seed": 0.2, "box": 0.2, "objectness": 1.5}
+        "vote": 0.9,
+        "template_vote": 0.1,
+        "seed": 0.2,
+        "box": 0.2,
+        "objectness": 1.5,
+    }
     sizes: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
-        "slim": {"backbone": SLIM_BACKBONE, "node_channels": 64, "itc_channels": 64,
-                 "out_channels": 128, "head": {"vote_channels": 128}},
+        "slim": {
+            "backbone": SLIM_BACKBONE,
+            "node_channels": 64,
+            "itc_channels": 64,
+            "out_channels": 128,
+            "head": {"vote_channels": 128},
+        },
     }
 
     def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:
@@ -103,8 +114,9 @@ class GPT(MatchingTracker):
             raise ValueError(f"gpt config: k must be >= 1, got {cfg.k}")
         if not cfg.use_itc and "template_vote" in cfg.loss_weights:
             cfg.loss_weights = {k: v for k, v in cfg.loss_weights.items() if k != "template_vote"}
-        fusion = GraphFusion(in_channels, cfg.node_channels, cfg.itc_channels, cfg.out_channels,
-                             cfg.k, cfg.use_itc)
+        fusion = GraphFusion(
+            in_channels, cfg.node_channels, cfg.itc_channels, cfg.out_channels, cfg.k, cfg.use_itc
+        )
         return fusion, cfg.out_channels
 
     def fuse(self, t_xyz, t_feat, s_xyz, s_feat, batch):

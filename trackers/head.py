@@ -85,8 +85,9 @@ class VotingHead(nn.Module):
         centres = vote_xyz[:, :n_prop]  # (B, P, 3)
         # first aggregation layer decomposed: per vote W [xyz; s; f] + b, per centre W_x c
         w, b = self.aggregate.linear_params(0)
-        per_vote = F.linear(torch.cat([vote_xyz, torch.sigmoid(seed_logits)[..., None],
-                                       vote_feat], dim=-1), w, b)
+        per_vote = F.linear(
+            torch.cat([vote_xyz, torch.sigmoid(seed_logits)[..., None], vote_feat], dim=-1), w, b
+        )
         per_centre = centres @ w[:, :3].t()
         radius, k = self.config.cluster_radius, self.config.cluster_votes
         if self.training or not self.fast_eval:  # dense: BatchNorm statistics over every slot
@@ -121,8 +122,12 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (values * mask).sum(dims) / (mask.sum(dims) + 1e-6)
 
 
-def head_losses(outputs: dict[str, torch.Tensor], search_box: torch.Tensor,
-                seed_labels: torch.Tensor, config: HeadConfig) -> dict[str, torch.Tensor]:
+def head_losses(
+    outputs: dict[str, torch.Tensor],
+    search_box: torch.Tensor,
+    seed_labels: torch.Tensor,
+    config: HeadConfig,
+) -> dict[str, torch.Tensor]:
     """Per-sample head losses ``(B,)``: ``vote``, ``seed``, ``objectness``, ``box``.
 
     ``search_box (B, 7)`` GT box in the search frame, ``seed_labels (B, M)`` 0/1 at the seeds.
@@ -132,13 +137,15 @@ def head_losses(outputs: dict[str, torch.Tensor], search_box: torch.Tensor,
     votes = outputs["votes"]
     vote = masked_mean(smooth_l1(votes, centre.expand_as(votes)), seed_labels)
     seed = F.binary_cross_entropy_with_logits(
-        outputs["seed_logits"], seed_labels, reduction="none").mean(-1)
+        outputs["seed_logits"], seed_labels, reduction="none"
+    ).mean(-1)
     dist = (outputs["proposal_centers"] - centre).square().sum(-1).add(1e-6).sqrt()  # (B, P)
     positive = (dist < config.positive_radius).float()
     counted = positive + (dist > config.negative_radius).float()
     pos_weight = torch.tensor(config.objectness_pos_weight, device=dist.device, dtype=dist.dtype)
-    obj = F.binary_cross_entropy_with_logits(outputs["scores"], positive, reduction="none",
-                                             pos_weight=pos_weight)
+    obj = F.binary_cross_entropy_with_logits(
+        outputs["scores"], positive, reduction="none", pos_weight=pos_weight
+    )
     objectness = masked_mean(obj, counted)
     target = torch.cat([search_box[:, :3], search_box[:, 6:7] / yaw_scale], dim=-1)  # (B, 4)
     box_raw = outputs["box_raw"]

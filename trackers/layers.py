@@ -82,8 +82,14 @@ class MLP(nn.Module):
         if torch.is_grad_enabled():  # a fresh fold: gradients reach the parameters
             return self._fold(i)
         lp, np_, nb = lin._parameters, norm._parameters, norm._buffers
-        sources = (lp["weight"], lp["bias"], np_["weight"], np_["bias"], nb["running_mean"],
-                   nb["running_var"])
+        sources = (
+            lp["weight"],
+            lp["bias"],
+            np_["weight"],
+            np_["bias"],
+            nb["running_mean"],
+            nb["running_var"],
+        )
         stamp = [None if t is None else (t._version, t.data_ptr()) for t in sources]
         cached = self._folded.get(i)
         if cached is None or cached[1] != stamp or not all(map(operator.is_, cached[0], sources)):
@@ -125,8 +131,13 @@ class MLP(nn.Module):
         return self.forward_from(0, F.linear(x, w, b))
 
 
-def grouped_max(mlp: MLP, per_point: torch.Tensor, per_centre: torch.Tensor,
-                group: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+def grouped_max(
+    mlp: MLP,
+    per_point: torch.Tensor,
+    per_centre: torch.Tensor,
+    group: torch.Tensor,
+    point: torch.Tensor,
+) -> torch.Tensor:
     """``max_j mlp.forward_from(0, per_point_j - per_centre_i)`` over the members ``j`` of each
     group ``i``: ``per_point (B, N, C1)``, ``per_centre (B, M, C1)``, pairs ``group (P,)`` (flat
     index ``b * M + m``, every group present) and ``point (P,)`` (flat ``b * N + j``, as
@@ -139,8 +150,9 @@ def grouped_max(mlp: MLP, per_point: torch.Tensor, per_centre: torch.Tensor,
     b, m, c1 = per_centre.shape
     plain = mlp.training or not mlp.fast_eval
     # index_select, not [...]: its backward is several times faster on CPU (see ops.gather)
-    pre = (per_point.reshape(-1, c1).index_select(0, point)
-           - per_centre.reshape(-1, c1).index_select(0, group))
+    pre = per_point.reshape(-1, c1).index_select(0, point) - per_centre.reshape(
+        -1, c1
+    ).index_select(0, group)
     last = len(mlp.linears) - 1
     bias = None
     if plain:  # BatchNorm on batch statistics (training), or unfolded: every member's output

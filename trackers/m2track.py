@@ -92,17 +92,25 @@ class M2TrackConfig(TrackerConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for key in ("seg_channels", "seg_head_channels", "point_channels", "hidden_channels",
-                    "head_channels"):
+        for key in (
+            "seg_channels",
+            "seg_head_channels",
+            "point_channels",
+            "hidden_channels",
+            "head_channels",
+        ):
             value = [int(c) for c in getattr(self, key)]
             if not value or min(value) < 1:
-                raise ValueError(f"{key} must be a non-empty list of positive widths, got "
-                                 f"{getattr(self, key)!r}")
+                raise ValueError(
+                    f"{key} must be a non-empty list of positive widths, got {getattr(self, key)!r}"
+                )
             setattr(self, key, value)
         if len(self.seg_channels) < 3:
-            raise ValueError(f"seg_channels needs at least 3 layers (the second one's features "
-                             f"are concatenated with the pooled last ones), got "
-                             f"{self.seg_channels}")
+            raise ValueError(
+                f"seg_channels needs at least 3 layers (the second one's features "
+                f"are concatenated with the pooled last ones), got "
+                f"{self.seg_channels}"
+            )
 
 
 class MiniPointNet(nn.Module):
@@ -121,8 +129,9 @@ class SegPointNet(nn.Module):
     """Per-point outputs ``(B, N, out)`` of a cloud ``(B, N, C)``: local (second-layer)
     features concatenated with the max-pooled global ones."""
 
-    def __init__(self, in_channels: int, channels: list[int], head: list[int],
-                 out_channels: int = 2) -> None:
+    def __init__(
+        self, in_channels: int, channels: list[int], head: list[int], out_channels: int = 2
+    ) -> None:
         super().__init__()
         self.local = MLP([in_channels, *channels[:2]])
         self.glob = MLP(channels[1:])
@@ -173,15 +182,31 @@ def box_cloud(points: torch.Tensor, boxes: torch.Tensor, size: torch.Tensor) -> 
     """BAT's BoxCloud: distances ``(B, N, 9)`` of points ``(B, N, 3)`` to the centre and the 8
     corners of boxes ``(B, 4)`` ``(x, y, z, yaw)`` of ``size (B, 3)`` (``l, w, h``), in the
     nuScenes corner order."""
-    signs = points.new_tensor([[0, 0, 0], [1, 1, 1], [1, -1, 1], [1, -1, -1], [1, 1, -1],
-                               [-1, 1, 1], [-1, -1, 1], [-1, -1, -1], [-1, 1, -1]])
+    signs = points.new_tensor(
+        [
+            [0, 0, 0],
+            [1, 1, 1],
+            [1, -1, 1],
+            [1, -1, -1],
+            [1, 1, -1],
+            [-1, 1, 1],
+            [-1, -1, 1],
+            [-1, -1, -1],
+            [-1, 1, -1],
+        ]
+    )
     keypoints = signs[None] * (0.5 * size[:, None, :])  # (B, 9, 3) in the box frame
     local = to_box_frame(points, boxes)
     return torch.linalg.vector_norm(local[:, :, None, :] - keypoints[:, None], dim=-1)
 
 
-def motion_cloud(previous: torch.Tensor, current: torch.Tensor, size: torch.Tensor,
-                 prior_is_gt: torch.Tensor, box_aware: bool = False) -> torch.Tensor:
+def motion_cloud(
+    previous: torch.Tensor,
+    current: torch.Tensor,
+    size: torch.Tensor,
+    prior_is_gt: torch.Tensor,
+    box_aware: bool = False,
+) -> torch.Tensor:
     """The merged two-frame cloud ``(B, N_p + N_c, 5)``: ``xyz``, time, prior-targetness mask
     (``box_aware``: ``(B, N_p + N_c, 14)``, plus the BoxCloud of the previous points to the
     reference box and zeros for the current ones).
@@ -197,10 +222,17 @@ def motion_cloud(previous: torch.Tensor, current: torch.Tensor, size: torch.Tens
     high = gt * MASK_GT[1] + (1 - gt) * MASK_PREDICTED[1]
     mask_prev = torch.where(inside, high, low)
     b, n_p, n_c = previous.shape[0], previous.shape[1], current.shape[1]
-    prev = torch.cat([previous, previous.new_full((b, n_p, 1), TIME_PREVIOUS),
-                      mask_prev[..., None]], dim=-1)
-    cur = torch.cat([current, current.new_full((b, n_c, 1), TIME_CURRENT),
-                     current.new_full((b, n_c, 1), MASK_CURRENT)], dim=-1)
+    prev = torch.cat(
+        [previous, previous.new_full((b, n_p, 1), TIME_PREVIOUS), mask_prev[..., None]], dim=-1
+    )
+    cur = torch.cat(
+        [
+            current,
+            current.new_full((b, n_c, 1), TIME_CURRENT),
+            current.new_full((b, n_c, 1), MASK_CURRENT),
+        ],
+        dim=-1,
+    )
     if box_aware:
         reference = previous.new_zeros(b, 4)
         prev = torch.cat([prev, box_cloud(previous, reference, size)], dim=-1)
@@ -225,8 +257,9 @@ def _to_tensor(obs: Mapping[str, Any], key: str, device: torch.device | str) -> 
     return tensor
 
 
-def prepare_motion_observation(obs: Any, device: torch.device | str = "cpu"
-                               ) -> tuple[dict[str, torch.Tensor], bool]:
+def prepare_motion_observation(
+    obs: Any, device: torch.device | str = "cpu"
+) -> tuple[dict[str, torch.Tensor], bool]:
     """One observation or a batch -> (the :meth:`M2Track.forward` batch, ``single``).
 
     Reads ``search (N, 3)``, ``previous_search (N', C >= 3)`` (its first 3 columns as ``xyz``),
@@ -237,13 +270,17 @@ def prepare_motion_observation(obs: Any, device: torch.device | str = "cpu"
     if not isinstance(obs, Mapping):
         raise TypeError(f"observation must be a dict, got {type(obs).__name__}")
     if "previous_search" not in obs:
-        raise KeyError(f"M2-Track needs the previous frame's points: the observation has no "
-                       f"'previous_search' (keys: {sorted(obs)}); make the env with "
-                       f"{PREVIOUS_SEARCH_OPTION}")
+        raise KeyError(
+            f"M2-Track needs the previous frame's points: the observation has no "
+            f"'previous_search' (keys: {sorted(obs)}); make the env with "
+            f"{PREVIOUS_SEARCH_OPTION}"
+        )
     missing = [k for k in ("search", "size", "motion") if k not in obs]
     if missing:
-        raise KeyError(f"observation is missing key(s) {missing}; M2-Track reads search (N, 3), "
-                       f"previous_search (N', C>=3), size (3,), motion (4,)")
+        raise KeyError(
+            f"observation is missing key(s) {missing}; M2-Track reads search (N, 3), "
+            f"previous_search (N', C>=3), size (3,), motion (4,)"
+        )
     search = _to_tensor(obs, "search", device)
     single = search.dim() == 2
     shapes = {"search": (None, 3), "previous_search": (None, None), "size": (3,), "motion": (4,)}
@@ -253,23 +290,34 @@ def prepare_motion_observation(obs: Any, device: torch.device | str = "cpu"
         raw = search if key == "search" else _to_tensor(obs, key, device)
         t = raw.unsqueeze(0) if single else raw
         ok = t.dim() == len(shape) + 1 and all(
-            want is None or got == want for got, want in zip(t.shape[1:], shape, strict=True))
+            want is None or got == want for got, want in zip(t.shape[1:], shape, strict=True)
+        )
         if key == "previous_search":
             ok = ok and t.shape[-1] >= 3
         if not ok:
-            want = {"search": "(N, 3)", "previous_search": "(N', C>=3)", "size": "(3,)",
-                    "motion": "(4,)"}[key]
-            raise ValueError(f"observation[{key!r}] has shape {tuple(raw.shape)}; expected "
-                             f"{want}" + (" or (B, ...) like search" if not single else
-                                          " (search is unbatched)"))
+            want = {
+                "search": "(N, 3)",
+                "previous_search": "(N', C>=3)",
+                "size": "(3,)",
+                "motion": "(4,)",
+            }[key]
+            raise ValueError(
+                f"observation[{key!r}] has shape {tuple(raw.shape)}; expected "
+                f"{want}" + (" or (B, ...) like search" if not single else " (search is unbatched)")
+            )
         if batch is None:
             batch = t.shape[0]
         elif t.shape[0] != batch:
-            raise ValueError(f"observation[{key!r}] has batch size {t.shape[0]}, search has "
-                             f"{batch}")
+            raise ValueError(
+                f"observation[{key!r}] has batch size {t.shape[0]}, search has {batch}"
+            )
         out[key] = t
-    return {"search": out["search"], "previous_search": out["previous_search"][..., :3],
-            "size": out["size"], "prior_is_gt": (out["motion"] == 0).all(dim=-1).float()}, single
+    return {
+        "search": out["search"],
+        "previous_search": out["previous_search"][..., :3],
+        "size": out["size"],
+        "prior_is_gt": (out["motion"] == 0).all(dim=-1).float(),
+    }, single
 
 
 @register("m2track")
@@ -278,16 +326,27 @@ class M2Track(Tracker):
 
     config_class = M2TrackConfig
     default_loss_weights: ClassVar[dict[str, float]] = {
-        "seg": 0.1, "motion_state": 0.1,
-        "center_motion": 2.0, "angle_motion": 10.0,
-        "center_prev": 2.0, "angle_prev": 10.0,
-        "center_aux": 2.0, "angle_aux": 10.0,
-        "center": 2.0, "angle": 10.0, "box_cloud": 1.0}
+        "seg": 0.1,
+        "motion_state": 0.1,
+        "center_motion": 2.0,
+        "angle_motion": 10.0,
+        "center_prev": 2.0,
+        "angle_prev": 10.0,
+        "center_aux": 2.0,
+        "angle_aux": 10.0,
+        "center": 2.0,
+        "angle": 10.0,
+        "box_cloud": 1.0,
+    }
     sizes: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
-        "slim": {"seg_channels": [32, 32, 64, 128, 256], "seg_head_channels": [128, 64, 64, 64],
-                 "point_channels": [32, 64, 128, 256], "hidden_channels": [256, 128],
-                 "head_channels": [64, 64]},
+        "slim": {
+            "seg_channels": [32, 32, 64, 128, 256],
+            "seg_head_channels": [128, 64, 64, 64],
+            "point_channels": [32, 64, 128, 256],
+            "hidden_channels": [256, 128],
+            "head_channels": [64, 64],
+        },
     }
     #: the training-sample recipe (:mod:`training.motion_samples`), read by the trainer
     sample_recipe: ClassVar[str] = "motion"
@@ -312,23 +371,28 @@ class M2Track(Tracker):
         self.box_net = MiniPointNet(3 + bc, cfg.point_channels, cfg.hidden_channels)
         self.box_head = MLP([d, *cfg.head_channels, 4], last_activation=False)
 
-    def forward(self, batch: Mapping[str, torch.Tensor],
-                generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    def forward(
+        self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:
         """:meth:`forward_batch`, one sample at a time in eval mode (batch invariance)."""
         for key in ("search", "previous_search"):
             value = batch[key]
             if value.dim() != 3 or value.shape[-1] != 3:
-                raise ValueError(f"batch[{key!r}] has shape {tuple(value.shape)}; expected "
-                                 f"(B, N, 3)")
+                raise ValueError(
+                    f"batch[{key!r}] has shape {tuple(value.shape)}; expected (B, N, 3)"
+                )
         b = batch["search"].shape[0]
         if self.training or not self.batch_invariant or b <= 1:
             return self.forward_batch(batch, generator)
-        parts = [self.forward_batch({k: v[i:i + 1] for k, v in batch.items()}, generator)
-                 for i in range(b)]
+        parts = [
+            self.forward_batch({k: v[i : i + 1] for k, v in batch.items()}, generator)
+            for i in range(b)
+        ]
         return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
-    def forward_batch(self, batch: Mapping[str, torch.Tensor],
-                      generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+    def forward_batch(
+        self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:
         """``search (B, N_c, 3)``, ``previous_search (B, N_p, 3)``, ``size (B, 3)``,
         ``prior_is_gt (B,)`` -> ``seg_logits (B, N_p + N_c, 2)``, ``motion (B, 4)``,
         ``motion_logits (B, 2)``, ``prev_box (B, 4)``, ``aux_box (B, 4)``, ``box (B, 4)``,
@@ -376,9 +440,17 @@ class M2Track(Tracker):
         box = offset_boxes(aux_box, self.box_head(self.box_net(merged)))
         if inverse is not None:
             seg_out = seg_out[:, inverse]
-        out = {"seg_logits": seg_out[..., :2], "motion": motion, "motion_logits": motion_logits,
-               "prev_box": prev_box, "aux_box": aux_box, "box": box, "feature": feature,
-               "proposals": box[:, None, :], "scores": box.new_zeros(box.shape[0], 1)}
+        out = {
+            "seg_logits": seg_out[..., :2],
+            "motion": motion,
+            "motion_logits": motion_logits,
+            "prev_box": prev_box,
+            "aux_box": aux_box,
+            "box": box,
+            "feature": feature,
+            "proposals": box[:, None, :],
+            "scores": box.new_zeros(box.shape[0], 1),
+        }
         if box_aware:
             out["box_cloud"] = seg_out[..., 2:]
         return out
@@ -400,8 +472,9 @@ class M2Track(Tracker):
         first-stage head reads): what the decorrelation weighting (-W) decorrelates."""
         return outputs["feature"]
 
-    def loss(self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
-             ) -> dict[str, torch.Tensor]:
+    def loss(
+        self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:
         """Per-sample losses ``(B,)`` and their weighted ``total``.
 
         Targets: ``seg_labels (B, N_p + N_c)`` (1: target), ``box (B, 4)``, ``prev_box (B,
@@ -416,8 +489,10 @@ class M2Track(Tracker):
         need = ("seg_labels", "box", "prev_box", "motion_box", "moving")
         missing = [k for k in need if k not in targets]
         if missing:
-            raise KeyError(f"m2track targets are missing {missing}; expected {list(need)} "
-                           f"(training.motion_samples)")
+            raise KeyError(
+                f"m2track targets are missing {missing}; expected {list(need)} "
+                f"(training.motion_samples)"
+            )
         labels = targets["seg_labels"].long()
         logits = outputs["seg_logits"]
         class_w = logits.new_tensor(SEG_CLASS_WEIGHTS)[labels]  # (B, N)
@@ -428,14 +503,16 @@ class M2Track(Tracker):
         terms = {"seg": seg, "motion_state": state}
         motion_norm = moving.mean() + 1e-6
         for suffix, pred, target, weight in (
-                ("motion", outputs["motion"], targets["motion_box"], moving / motion_norm),
-                ("prev", outputs["prev_box"], targets["prev_box"], None),
-                ("aux", outputs["aux_box"], targets["box"], None),
-                ("", outputs["box"], targets["box"], None)):
+            ("motion", outputs["motion"], targets["motion_box"], moving / motion_norm),
+            ("prev", outputs["prev_box"], targets["prev_box"], None),
+            ("aux", outputs["aux_box"], targets["box"], None),
+            ("", outputs["box"], targets["box"], None),
+        ):
             target = target.float()
             center = F.smooth_l1_loss(pred[:, :3], target[:, :3], reduction="none").mean(1)
-            angle = F.smooth_l1_loss(torch.sin(pred[:, 3]), torch.sin(target[:, 3]),
-                                     reduction="none")
+            angle = F.smooth_l1_loss(
+                torch.sin(pred[:, 3]), torch.sin(target[:, 3]), reduction="none"
+            )
             if weight is not None:
                 center, angle = center * weight, angle * weight
             name = f"_{suffix}" if suffix else ""
@@ -444,9 +521,9 @@ class M2Track(Tracker):
         if self.config.box_aware:
             if "box_cloud" not in targets:
                 raise KeyError("box_aware m2track targets need 'box_cloud' (B, N_p + N_c, 9)")
-            terms["box_cloud"] = F.smooth_l1_loss(outputs["box_cloud"],
-                                                  targets["box_cloud"].float(),
-                                                  reduction="none").mean(dim=(1, 2))
+            terms["box_cloud"] = F.smooth_l1_loss(
+                outputs["box_cloud"], targets["box_cloud"].float(), reduction="none"
+            ).mean(dim=(1, 2))
         weights = self.config.loss_weights
         total = sum(weights[k] * terms[k] for k in weights)
         return {"total": total, **terms}
@@ -466,8 +543,9 @@ class M2Track(Tracker):
             self.train(was_training)
         action = out["box"].clone()
         action[:, 3] = torch.remainder(action[:, 3] + math.pi, 2 * math.pi) - math.pi
-        empty = ((batch["search"] == 0).flatten(1).all(1)
-                 & (batch["previous_search"] == 0).flatten(1).all(1))
+        empty = (batch["search"] == 0).flatten(1).all(1) & (batch["previous_search"] == 0).flatten(
+            1
+        ).all(1)
         action = torch.where(empty[:, None], torch.zeros_like(action), action)
         action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
         a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)

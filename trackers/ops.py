@@ -118,8 +118,9 @@ def hash_order(xyz: torch.Tensor, seed: int = 0, quantum: float = 1e-4) -> torch
     return hash_orders([xyz], [seed], quantum)[0]
 
 
-def hash_orders(clouds: Sequence[torch.Tensor], seeds: Sequence[int], quantum: float = 1e-4
-                ) -> list[torch.Tensor]:
+def hash_orders(
+    clouds: Sequence[torch.Tensor], seeds: Sequence[int], quantum: float = 1e-4
+) -> list[torch.Tensor]:
     """:func:`hash_order` of each cloud ``(B, N_i, 3)`` with its seed -> ``[(B, N_i)]``, the
     same orders bit for bit, hashed side by side (one pass of the elementwise hash, which is
     most of the cost at batch 1)."""
@@ -155,8 +156,9 @@ def hash_orders(clouds: Sequence[torch.Tensor], seeds: Sequence[int], quantum: f
     return [order[:, a:b] - a for a, b in itertools.pairwise(offsets)]
 
 
-def _sort_within(key: torch.Tensor, segment: torch.Tensor | None
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def _sort_within(
+    key: torch.Tensor, segment: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Stable sort of ``key (B, N)`` within the consecutive segments ``segment (B, N)`` (sorted
     values and indices; ``None``: one segment): by key, then stably by segment."""
     key, order = torch.sort(key, dim=1, stable=True)
@@ -236,8 +238,9 @@ def ball_query(
     return idx
 
 
-def ball_query_pairs(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+def ball_query_pairs(
+    radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The real hits of :func:`ball_query` as flat pairs: ``xyz (B, N, 3)``, ``centres (B, M, 3)``
     -> ``group (P,)`` (flat centre index ``b * M + m``) and ``point (P,)`` (flat point index
     ``b * N + j``), sorted by centre then point.
@@ -262,8 +265,9 @@ def ball_query_pairs(radius: float, k: int, xyz: torch.Tensor, centres: torch.Te
 _DENSE_PAIRS = 1 << 18
 
 
-def _ball_dense(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+def _ball_dense(
+    radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Every point a candidate -> flat centre index ``(P,)``, point index in its row ``(P,)``.
 
     A running hit count (``cumsum``) marks the first ``k`` hits, one ``nonzero`` lists them.
@@ -278,8 +282,9 @@ def _ball_dense(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
     return pairs[:, 0], pairs[:, 1]
 
 
-def _ball_grid(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+def _ball_grid(
+    radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Candidates from the 3 x 3 cells of an ``x, y`` grid around each centre -> flat centre
     index ``(P,)``, point index in its row ``(P,)``.
 
@@ -302,8 +307,7 @@ def _ball_grid(radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
     lo = torch.searchsorted(sorted_key, first_cell)  # (B*M, 3): one column of 3 cells each
     count = (torch.searchsorted(sorted_key, first_cell + 2, right=True) - lo).flatten()
     total = int(count.sum())
-    column = torch.repeat_interleave(torch.arange(b * m * 3, device=dev), count,
-                                     output_size=total)
+    column = torch.repeat_interleave(torch.arange(b * m * 3, device=dev), count, output_size=total)
     offset = torch.arange(total, device=dev) - (count.cumsum(0) - count).index_select(0, column)
     point = by_key.index_select(0, lo.flatten().index_select(0, column) + offset)
     group = torch.div(column, 3, rounding_mode="floor")

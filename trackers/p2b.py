@@ -53,28 +53,32 @@ class P2BFusion(nn.Module):
         t = F.normalize(t_feat, dim=-1, eps=1e-8)
         return t @ F.normalize(s_feat, dim=-1, eps=1e-8).transpose(1, 2)
 
-    def forward(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
-                s_feat: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_feat: torch.Tensor
+    ) -> torch.Tensor:
         if self.training or not self.fast_eval:
             return self.forward_plain(t_xyz, t_feat, s_feat)
         return self.forward_fast(t_xyz, t_feat, s_feat)
 
-    def first_layer(self, t_xyz: torch.Tensor, t_feat: torch.Tensor
-                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    def first_layer(
+        self, t_xyz: torch.Tensor, t_feat: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """First-layer template part ``a (B, M_T, H)`` and similarity weight ``w (H,)``."""
         w, b = self.mlp.linear_params(0)
         return F.linear(torch.cat([t_xyz, t_feat], dim=-1), w[:, 1:], b), w[:, 0]
 
-    def forward_plain(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
-                      s_feat: torch.Tensor) -> torch.Tensor:
+    def forward_plain(
+        self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_feat: torch.Tensor
+    ) -> torch.Tensor:
         """The TFA MLP on every (template seed, search seed) pair, max over template seeds."""
         a, w = self.first_layer(t_xyz, t_feat)
         cos = self.cosine(t_feat, s_feat)  # (B, M_T, M_S)
         pre = torch.addcmul(a[:, :, None, :], cos[..., None], w)  # (B, M_T, M_S, H)
         return self.post(self.mlp.forward_from(0, pre).amax(dim=1))
 
-    def forward_fast(self, t_xyz: torch.Tensor, t_feat: torch.Tensor,
-                     s_feat: torch.Tensor) -> torch.Tensor:
+    def forward_fast(
+        self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_feat: torch.Tensor
+    ) -> torch.Tensor:
         """:meth:`forward_plain` by knot interpolation (:mod:`trackers.p2b_knots`); every pair
         when the knots are too many."""
         t_xyz, t_feat = p2b_knots.unique_seeds(t_xyz, t_feat)
@@ -93,11 +97,19 @@ class P2B(MatchingTracker):
 
     config_class = P2BConfig
     default_loss_weights: ClassVar[dict[str, float]] = {
-        "vote": 1.0, "seed": 0.2, "objectness": 1.5, "box": 0.2}
+        "vote": 1.0,
+        "seed": 0.2,
+        "objectness": 1.5,
+        "box": 0.2,
+    }
     sizes: ClassVar[dict[str, dict[str, Any]]] = {
         "default": {},
-        "slim": {"backbone": SLIM_BACKBONE, "hidden_channels": 64, "out_channels": 128,
-                 "head": {"vote_channels": 128}},
+        "slim": {
+            "backbone": SLIM_BACKBONE,
+            "hidden_channels": 64,
+            "out_channels": 128,
+            "head": {"vote_channels": 128},
+        },
     }
 
     def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:

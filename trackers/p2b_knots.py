@@ -26,8 +26,14 @@ import torch.nn.functional as F
 from trackers import ops
 from trackers.layers import MLP
 
-__all__ = ["MAX_KNOT_FRACTION", "interpolate_max", "knots", "pre_activation", "tfa_pre_max",
-           "unique_seeds"]
+__all__ = [
+    "MAX_KNOT_FRACTION",
+    "interpolate_max",
+    "knots",
+    "pre_activation",
+    "tfa_pre_max",
+    "unique_seeds",
+]
 
 #: Knots per template seed (a fraction of the search seeds) above which the dense path is cheaper.
 MAX_KNOT_FRACTION = 0.25
@@ -53,8 +59,9 @@ def unique_seeds(xyz: torch.Tensor, feats: torch.Tensor) -> tuple[torch.Tensor, 
     return ops.gather(xyz, keep), ops.gather(feats, keep)
 
 
-def pre_activation(mlp: MLP, a: torch.Tensor, w: torch.Tensor, c: torch.Tensor,
-                   layer: int) -> torch.Tensor:
+def pre_activation(
+    mlp: MLP, a: torch.Tensor, w: torch.Tensor, c: torch.Tensor, layer: int
+) -> torch.Tensor:
     """Pre-activation of ``layer`` for scalar inputs: ``a (B, M, H)``, ``w (H,)``, ``c (B, M, K)``
     -> ``(B, M, K, C)``, the MLP applied to the first-layer pre-activations ``a + c w``."""
     x = torch.addcmul(a[:, :, None, :], c[..., None], w)
@@ -64,8 +71,9 @@ def pre_activation(mlp: MLP, a: torch.Tensor, w: torch.Tensor, c: torch.Tensor,
     return x
 
 
-def knots(mlp: MLP, a: torch.Tensor, w: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
-          max_knots: int) -> tuple[torch.Tensor, torch.Tensor] | None:
+def knots(
+    mlp: MLP, a: torch.Tensor, w: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, max_knots: int
+) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Breakpoints of ``c -> mlp`` (eval: Linear + ReLU layers) with first-layer pre-activation
     ``a + c w`` on ``[lo, hi]``: ``a (B, M, H)``, ``w (H,)``, ``lo, hi (B, M)`` -> sorted knots
     ``(B, M, K)`` (from ``lo`` to ``hi``; rows with fewer knots repeat ``hi``) and the last
@@ -88,8 +96,9 @@ def knots(mlp: MLP, a: torch.Tensor, w: torch.Tensor, lo: torch.Tensor, hi: torc
         zero = torch.minimum(zero, t1)  # rounding must not move a kink past its interval
         zero = torch.where(cross, zero, hi[:, :, None, None])  # padding: repeats of hi
         t = torch.cat([t, zero.flatten(2)], dim=-1)
-        t = t.topk(t.shape[-1] - zero.shape[2] * zero.shape[3] + new, dim=-1, largest=False,
-                   sorted=True).values
+        t = t.topk(
+            t.shape[-1] - zero.shape[2] * zero.shape[3] + new, dim=-1, largest=False, sorted=True
+        ).values
     return t, pre_activation(mlp, a, w, t, len(mlp.linears) - 1)
 
 
@@ -113,7 +122,7 @@ def interpolate_max(t: torch.Tensor, values: torch.Tensor, c: torch.Tensor) -> t
     chunk = max(1, _CACHE_FLOATS // (b * c.shape[2] * values.shape[-1]))
     out = None
     for s in range(0, m, chunk):
-        part = torch.matmul(coef[:, s:s + chunk], values[:, s:s + chunk]).amax(dim=1)
+        part = torch.matmul(coef[:, s : s + chunk], values[:, s : s + chunk]).amax(dim=1)
         if out is None:
             out = part
         elif torch.is_grad_enabled():  # out= has no autograd
@@ -123,8 +132,9 @@ def interpolate_max(t: torch.Tensor, values: torch.Tensor, c: torch.Tensor) -> t
     return out
 
 
-def tfa_pre_max(mlp: MLP, a: torch.Tensor, w: torch.Tensor, cos: torch.Tensor
-                ) -> torch.Tensor | None:
+def tfa_pre_max(
+    mlp: MLP, a: torch.Tensor, w: torch.Tensor, cos: torch.Tensor
+) -> torch.Tensor | None:
     """``max_i`` of the last pre-activation of ``mlp`` over template seeds: first-layer template
     part ``a (B, M_T, H)``, similarity weight ``w (H,)``, similarities ``cos (B, M_T, M_S)`` ->
     ``(B, M_S, C)`` (the final ReLU not applied), or ``None`` when some template seed has more

@@ -35,9 +35,21 @@ from typing import Any
 
 import torch
 
-__all__ = ["CHECKPOINT_DIR", "MANIFEST", "available", "find_checkpoint", "load", "load_file",
-           "make", "register", "save", "size_config", "tracker_class", "unregister",
-           "write_manifest"]
+__all__ = [
+    "CHECKPOINT_DIR",
+    "MANIFEST",
+    "available",
+    "find_checkpoint",
+    "load",
+    "load_file",
+    "make",
+    "register",
+    "save",
+    "size_config",
+    "tracker_class",
+    "unregister",
+    "write_manifest",
+]
 
 CHECKPOINT_DIR = Path(__file__).resolve().parent / "checkpoints"
 MANIFEST = CHECKPOINT_DIR / "manifest.json"
@@ -56,14 +68,17 @@ def register(name: str) -> Callable[[type], type]:
     baseline needs only ``act``. A name already registered is an error naming the registered
     ones (:func:`unregister` first to replace a tracker)."""
     if not isinstance(name, str) or not name or name != name.lower() or "/" in name:
-        raise ValueError(f"tracker name must be a non-empty lower-case string without '/', "
-                         f"got {name!r}")
+        raise ValueError(
+            f"tracker name must be a non-empty lower-case string without '/', got {name!r}"
+        )
 
     def decorate(cls: type) -> type:
         if name in _REGISTRY:
-            raise ValueError(f"tracker name {name!r} is already registered (by "
-                             f"{_REGISTRY[name].__module__}.{_REGISTRY[name].__qualname__}); "
-                             f"registered: {sorted(_REGISTRY)}")
+            raise ValueError(
+                f"tracker name {name!r} is already registered (by "
+                f"{_REGISTRY[name].__module__}.{_REGISTRY[name].__qualname__}); "
+                f"registered: {sorted(_REGISTRY)}"
+            )
         if not callable(getattr(cls, "act", None)):
             raise TypeError(f"tracker {name!r}: {cls.__qualname__} has no act(obs) method")
         cls.name = name
@@ -100,8 +115,9 @@ def available(kind: str = "all") -> list[str]:
         raise ValueError(f"unknown kind {kind!r}; valid: {list(_KINDS)}")
     learned = [n for n, c in _REGISTRY.items() if _is_learned(c)]
     baselines = [n for n, c in _REGISTRY.items() if not _is_learned(c)]
-    shipped = sorted({p.stem for suffix in ("*.safetensors", "*.pt")
-                      for p in CHECKPOINT_DIR.glob(suffix)})
+    shipped = sorted(
+        {p.stem for suffix in ("*.safetensors", "*.pt") for p in CHECKPOINT_DIR.glob(suffix)}
+    )
     parts = {"learned": learned, "baseline": baselines, "checkpoint": shipped}
     return parts[kind] if kind != "all" else [*learned, *baselines, *shipped]
 
@@ -113,8 +129,7 @@ def size_config(name: str, size: str = "default") -> dict[str, Any]:
     if not _is_learned(cls):
         raise ValueError(f"{name!r} is a baseline: it has no model sizes")
     if size not in cls.sizes:
-        raise ValueError(f"tracker {name!r} has no model size {size!r}; valid: "
-                         f"{sorted(cls.sizes)}")
+        raise ValueError(f"tracker {name!r} has no model size {size!r}; valid: {sorted(cls.sizes)}")
     return copy.deepcopy(cls.sizes[size])
 
 
@@ -135,8 +150,10 @@ def save(tracker: Any, path: str | Path) -> Path:
     if not isinstance(tracker, Tracker):
         raise TypeError(f"only learned trackers have weights to save, got {type(tracker).__name__}")
     if _REGISTRY.get(tracker.name) is not type(tracker):
-        raise ValueError(f"{type(tracker).__qualname__} is not registered as {tracker.name!r}: "
-                         f"load could not rebuild it; registered: {sorted(_REGISTRY)}")
+        raise ValueError(
+            f"{type(tracker).__qualname__} is not registered as {tracker.name!r}: "
+            f"load could not rebuild it; registered: {sorted(_REGISTRY)}"
+        )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     config_json = json.dumps(config_to_dict(tracker.config), sort_keys=True)
@@ -144,14 +161,29 @@ def save(tracker: Any, path: str | Path) -> Path:
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         if path.suffix in (".pt", ".pth"):
-            torch.save({"format": FORMAT, "version": VERSION, "tracker": tracker.name,
-                        "config": config_json, "state_dict": state}, tmp)
+            torch.save(
+                {
+                    "format": FORMAT,
+                    "version": VERSION,
+                    "tracker": tracker.name,
+                    "config": config_json,
+                    "state_dict": state,
+                },
+                tmp,
+            )
         else:
             from safetensors.torch import save_file
 
-            save_file(state, str(tmp), metadata={"format": FORMAT, "version": VERSION,
-                                                  "tracker": tracker.name,
-                                                  "config": config_json})
+            save_file(
+                state,
+                str(tmp),
+                metadata={
+                    "format": FORMAT,
+                    "version": VERSION,
+                    "tracker": tracker.name,
+                    "config": config_json,
+                },
+            )
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -164,8 +196,10 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
         try:
             blob = torch.load(path, map_location="cpu", weights_only=True)
         except Exception as exc:  # corrupted, truncated or unsafe content
-            raise ValueError(f"cannot read tracker checkpoint {path}: corrupted or not a "
-                             f"weights-only torch file ({type(exc).__name__}: {exc})") from exc
+            raise ValueError(
+                f"cannot read tracker checkpoint {path}: corrupted or not a "
+                f"weights-only torch file ({type(exc).__name__}: {exc})"
+            ) from exc
         if not isinstance(blob, dict) or "state_dict" not in blob:
             raise ValueError(f"{path} is not a pointtrack tracker checkpoint (no state_dict)")
         meta = {k: blob.get(k) for k in ("format", "version", "tracker", "config")}
@@ -177,8 +211,10 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
             meta = dict(f.metadata() or {})
             state = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open API
     except Exception as exc:
-        raise ValueError(f"cannot read tracker checkpoint {path}: corrupted or not a "
-                         f"safetensors file ({type(exc).__name__}: {exc})") from exc
+        raise ValueError(
+            f"cannot read tracker checkpoint {path}: corrupted or not a "
+            f"safetensors file ({type(exc).__name__}: {exc})"
+        ) from exc
     return meta, state
 
 
@@ -207,12 +243,21 @@ def write_manifest(directory: str | Path = CHECKPOINT_DIR) -> Path:
     """Record the SHA-256 of every checkpoint in ``directory`` in its ``manifest.json``
     (atomically); run it after replacing a shipped checkpoint."""
     directory = Path(directory)
-    files = {p.name: _sha256(p) for suffix in ("*.safetensors", "*.pt")
-             for p in sorted(directory.glob(suffix))}
+    files = {
+        p.name: _sha256(p)
+        for suffix in ("*.safetensors", "*.pt")
+        for p in sorted(directory.glob(suffix))
+    }
     path = directory / MANIFEST.name
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps({"format": _MANIFEST_FORMAT, "algorithm": "sha256",
-                               "files": files}, indent=1, sort_keys=True) + "\n")
+    tmp.write_text(
+        json.dumps(
+            {"format": _MANIFEST_FORMAT, "algorithm": "sha256", "files": files},
+            indent=1,
+            sort_keys=True,
+        )
+        + "\n"
+    )
     tmp.replace(path)
     return path
 
@@ -224,22 +269,31 @@ def _verify_shipped(path: Path) -> None:
         return
     expected = _manifest(directory).get(path.name)
     if expected is None:
-        raise ValueError(f"{path} is in the shipped checkpoint directory but not in its manifest "
-                         f"{directory / MANIFEST.name}; run trackers.registry.write_manifest() "
-                         f"after adding a checkpoint")
+        raise ValueError(
+            f"{path} is in the shipped checkpoint directory but not in its manifest "
+            f"{directory / MANIFEST.name}; run trackers.registry.write_manifest() "
+            f"after adding a checkpoint"
+        )
     actual = _sha256(path)
     if actual != expected:
-        raise ValueError(f"{path}: SHA-256 {actual} does not match the manifest's {expected} "
-                         f"({directory / MANIFEST.name}); the file is corrupted or was modified")
+        raise ValueError(
+            f"{path}: SHA-256 {actual} does not match the manifest's {expected} "
+            f"({directory / MANIFEST.name}); the file is corrupted or was modified"
+        )
 
 
 def _check_finite(path: Path, state: dict[str, torch.Tensor]) -> None:
     for key, value in state.items():
-        if isinstance(value, torch.Tensor) and value.is_floating_point() \
-                and not bool(torch.isfinite(value).all()):
+        if (
+            isinstance(value, torch.Tensor)
+            and value.is_floating_point()
+            and not bool(torch.isfinite(value).all())
+        ):
             bad = int((~torch.isfinite(value)).sum())
-            raise ValueError(f"{path}: tensor {key!r} has {bad} NaN or inf value(s) of "
-                             f"{value.numel()}; refusing to load")
+            raise ValueError(
+                f"{path}: tensor {key!r} has {bad} NaN or inf value(s) of "
+                f"{value.numel()}; refusing to load"
+            )
 
 
 def _migrate(config: dict[str, Any]) -> dict[str, Any]:
@@ -247,8 +301,7 @@ def _migrate(config: dict[str, Any]) -> dict[str, Any]:
     ``Tracker.fast_eval``) is dropped."""
     backbone = config.get("backbone")
     if isinstance(backbone, dict) and "ragged_eval" in backbone:
-        config = {**config, "backbone": {k: v for k, v in backbone.items()
-                                         if k != "ragged_eval"}}
+        config = {**config, "backbone": {k: v for k, v in backbone.items() if k != "ragged_eval"}}
     return config
 
 
@@ -260,15 +313,19 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
     _verify_shipped(path)
     meta, state = _read(path)
     if meta.get("format") != FORMAT or not meta.get("tracker") or meta.get("config") is None:
-        raise ValueError(f"{path} is not a pointtrack tracker checkpoint "
-                         f"(metadata format={meta.get('format')!r})")
+        raise ValueError(
+            f"{path} is not a pointtrack tracker checkpoint "
+            f"(metadata format={meta.get('format')!r})"
+        )
     name = str(meta["tracker"])
     if expect is not None and name != expect.lower():
         raise ValueError(f"{path} holds a {name!r} checkpoint, not {expect!r}")
     learned = available("learned")
     if name not in learned:
-        raise ValueError(f"{path}: unknown tracker {name!r} in checkpoint; registered learned "
-                         f"trackers: {learned}")
+        raise ValueError(
+            f"{path}: unknown tracker {name!r} in checkpoint; registered learned "
+            f"trackers: {learned}"
+        )
     _check_finite(path, state)
     try:
         config = _migrate(json.loads(meta["config"]))
@@ -281,8 +338,9 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
-        raise ValueError(f"{path}: weights do not match a {name!r} with the stored config: "
-                         f"{exc}") from exc
+        raise ValueError(
+            f"{path}: weights do not match a {name!r} with the stored config: {exc}"
+        ) from exc
     return model.to(map_location).eval()
 
 

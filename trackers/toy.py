@@ -25,18 +25,29 @@ def _surface(n: int, size: torch.Tensor, g: torch.Generator) -> torch.Tensor:
     return u * size[:, None, :]
 
 
-def toy_batch(batch_size: int = 2, seed: int = 0, template_points: int = 512,
-              search_points: int = 1024, target_fraction: float = 0.4
-              ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+def toy_batch(
+    batch_size: int = 2,
+    seed: int = 0,
+    template_points: int = 512,
+    search_points: int = 1024,
+    target_fraction: float = 0.4,
+) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
     """A synthetic batch and its targets (float32 CPU tensors), deterministic in ``seed``."""
     g = torch.Generator().manual_seed(seed)
     b = batch_size
-    size = torch.stack([3.5 + torch.rand(b, generator=g), 1.5 + 0.4 * torch.rand(b, generator=g),
-                        1.4 + 0.3 * torch.rand(b, generator=g)], dim=-1)
+    size = torch.stack(
+        [
+            3.5 + torch.rand(b, generator=g),
+            1.5 + 0.4 * torch.rand(b, generator=g),
+            1.4 + 0.3 * torch.rand(b, generator=g),
+        ],
+        dim=-1,
+    )
     zeros = torch.zeros(b, 1)
     # ground-truth box in the search (reference) frame
-    centre = torch.cat([0.4 * torch.randn(b, 2, generator=g),
-                        0.1 * torch.randn(b, 1, generator=g)], -1)
+    centre = torch.cat(
+        [0.4 * torch.randn(b, 2, generator=g), 0.1 * torch.randn(b, 1, generator=g)], -1
+    )
     yaw = 0.1 * torch.randn(b, 1, generator=g)
     gt = torch.cat([centre, size, yaw], dim=-1)
     # search: target surface points + ground plane + a few clutter points
@@ -62,9 +73,16 @@ def toy_batch(batch_size: int = 2, seed: int = 0, template_points: int = 512,
     template = torch.cat([t_target, t_ground], dim=1)
     t_local = world_to_box_torch(template, canon)
     t_labels = (t_local.abs() <= size[:, None, :] / 2 + 1e-4).all(-1).float()
-    batch = {"template": template.float(), "search": search.float(), "size": size.float(),
-             "motion": torch.zeros(b, 4)}
-    targets = {"search_box": gt.float(), "search_labels": labels,
-               "template_centers": torch.zeros(b, template_points, 3), "template_labels": t_labels}
+    batch = {
+        "template": template.float(),
+        "search": search.float(),
+        "size": size.float(),
+        "motion": torch.zeros(b, 4),
+    }
+    targets = {
+        "search_box": gt.float(),
+        "search_labels": labels,
+        "template_centers": torch.zeros(b, template_points, 3),
+        "template_labels": t_labels,
+    }
     return batch, targets
-

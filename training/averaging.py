@@ -58,8 +58,11 @@ class WeightEMA:
         return model
 
     def state_dict(self) -> dict[str, Any]:
-        return {"decay": self.decay, "updates": self.updates,
-                "shadow": {k: v.clone() for k, v in self.shadow.items()}}
+        return {
+            "decay": self.decay,
+            "updates": self.updates,
+            "shadow": {k: v.clone() for k, v in self.shadow.items()},
+        }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if set(state["shadow"]) != set(self.shadow):

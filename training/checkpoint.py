@@ -118,19 +118,26 @@ def restore_rng_state(state: Mapping[str, Any]) -> None:
     """Set the global RNGs from :func:`rng_state`'s dict."""
     torch.set_rng_state(state["torch"])
     np.random.set_state(
-        ("MT19937", state["numpy_keys"].numpy().astype(np.uint32), state["numpy_pos"],
-         state["numpy_has_gauss"], state["numpy_cached"])
+        (
+            "MT19937",
+            state["numpy_keys"].numpy().astype(np.uint32),
+            state["numpy_pos"],
+            state["numpy_has_gauss"],
+            state["numpy_cached"],
+        )
     )
     version, internal, gauss = state["python"]
     random.setstate((version, tuple(internal), gauss))
 
 
-def config_differences(checkpoint: Mapping[str, Any], current: Mapping[str, Any],
-                       label: str) -> str:
+def config_differences(
+    checkpoint: Mapping[str, Any], current: Mapping[str, Any], label: str
+) -> str:
     """``"key: checkpoint A vs <label> B, ..."`` for every key whose values differ; "" if none."""
     keys = sorted(k for k in set(checkpoint) | set(current) if checkpoint.get(k) != current.get(k))
-    return ", ".join(f"{k}: checkpoint {checkpoint.get(k)!r} vs {label} {current.get(k)!r}"
-                     for k in keys)
+    return ", ".join(
+        f"{k}: checkpoint {checkpoint.get(k)!r} vs {label} {current.get(k)!r}" for k in keys
+    )
 
 
 def _identity(values: Mapping[str, Any]) -> dict[str, Any]:
@@ -148,8 +155,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"{path} is not a training checkpoint: {exc}") from exc
     if not isinstance(ckpt, dict) or ckpt.get("format") != CHECKPOINT_FORMAT:
         found = ckpt.get("format") if isinstance(ckpt, dict) else None
-        raise CheckpointError(f"{path} is not a training checkpoint (format {found!r}, "
-                              f"expected {CHECKPOINT_FORMAT})")
+        raise CheckpointError(
+            f"{path} is not a training checkpoint (format {found!r}, expected {CHECKPOINT_FORMAT})"
+        )
     return ckpt
 
 

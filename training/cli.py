@@ -39,15 +39,21 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="pointtrack", description=__doc__,
-                                     formatter_class=HelpFormatter)
-    parser.add_argument("--traceback", action="store_true",
-                        help="show the full traceback of an expected error")
+    parser = argparse.ArgumentParser(
+        prog="pointtrack", description=__doc__, formatter_class=HelpFormatter
+    )
+    parser.add_argument(
+        "--traceback", action="store_true", help="show the full traceback of an expected error"
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name, (module, help_text) in COMMANDS.items():
         mod = _command_module(module)
-        cmd = sub.add_parser(name, help=help_text, description=plain_text(mod.__doc__ or help_text),
-                             formatter_class=HelpFormatter)
+        cmd = sub.add_parser(
+            name,
+            help=help_text,
+            description=plain_text(mod.__doc__ or help_text),
+            formatter_class=HelpFormatter,
+        )
         cmd.set_defaults(_module=module)
         mod.add_arguments(cmd)
     return parser

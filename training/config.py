@@ -27,6 +27,7 @@ __all__ = [
     "tracker_config",
 ]
 
+
 def tracker_config(tracker: str, model_size: str = "default", extra: dict | None = None) -> dict:
     """The kwargs of ``trackers.make(tracker, ...)`` for a model size (the tracker class's
     ``sizes``, :func:`trackers.size_config`), updated by ``extra``."""
@@ -46,14 +47,32 @@ INITS = ("default", "kaiming")
 # issue 24; v2 follows Open3DSOT's code (the reference framework of P2B and BAT) item by item.
 # Each key is also a TrainConfig field; None there means "the recipe's value".
 RECIPES: dict[str, dict[str, Any]] = {
-    "v1": {"zero_offset_candidate": False, "min_crop_points": 0, "template_union": False,
-           "frame0_samples": False, "limit_box": False, "loss_reduction": "sample",
-           "adam_beta1": 0.9, "adam_eps": 1e-8, "bat_fps": False, "init": "default",
-           "gpt_search_region": False},
-    "v2": {"zero_offset_candidate": True, "min_crop_points": 21, "template_union": True,
-           "frame0_samples": True, "limit_box": True, "loss_reduction": "pooled",
-           "adam_beta1": 0.5, "adam_eps": 1e-6, "bat_fps": True, "init": "kaiming",
-           "gpt_search_region": True},
+    "v1": {
+        "zero_offset_candidate": False,
+        "min_crop_points": 0,
+        "template_union": False,
+        "frame0_samples": False,
+        "limit_box": False,
+        "loss_reduction": "sample",
+        "adam_beta1": 0.9,
+        "adam_eps": 1e-8,
+        "bat_fps": False,
+        "init": "default",
+        "gpt_search_region": False,
+    },
+    "v2": {
+        "zero_offset_candidate": True,
+        "min_crop_points": 21,
+        "template_union": True,
+        "frame0_samples": True,
+        "limit_box": True,
+        "loss_reduction": "pooled",
+        "adam_beta1": 0.5,
+        "adam_eps": 1e-6,
+        "bat_fps": True,
+        "init": "kaiming",
+        "gpt_search_region": True,
+    },
 }
 GPT_SEARCH_ENLARGEMENT = (1.0, 4.0)
 """``(scale, offset_m)`` of GPT's search region (its paper: the previous box plus 4 m on every
@@ -72,7 +91,8 @@ class ConfigError(ValueError):
 @dataclass
 class TrainConfig:
     """Everything a pretraining run depends on. Defaults follow GPT's "Implementation Details"
-    (Adam, lr 1e-3 decayed x0.2 every 12 epochs, batch 48) and ``000_…`` Sec. III-C / IV-B."""
+    (Adam, lr 1e-3 decayed x0.2 every 12 epochs, batch 48) and Tian et al. (TIP 2024) Sec. III-C /
+    IV-B."""
 
     # what is trained
     tracker: str = "p2b"
@@ -186,8 +206,14 @@ class TrainConfig:
             bad("data_root", "dataset=kitti needs data_root (the KITTI tracking root)")
         if self.setting is None and self.category is None:
             bad("setting", "give a setting (class-agnostic) or a category (class-specific)")
-        for key in ("epochs", "batch_size", "candidates_per_frame", "lr_step_epochs",
-                    "rff_functions", "val_every"):
+        for key in (
+            "epochs",
+            "batch_size",
+            "candidates_per_frame",
+            "lr_step_epochs",
+            "rff_functions",
+            "val_every",
+        ):
             if getattr(self, key) < 1:
                 bad(key, "must be >= 1")
         for key in ("iters_per_epoch", "val_max_tracklets", "val_max_frames", "num_threads"):
@@ -199,8 +225,14 @@ class TrainConfig:
                 bad(key, "must be > 0")
         if not 0 < self.lr_gamma <= 1:
             bad("lr_gamma", "must be in (0, 1]")
-        for key in ("weight_decay", "sam_rho", "decor_penalty", "decor_iters", "num_workers",
-                    "decor_decay_every"):
+        for key in (
+            "weight_decay",
+            "sam_rho",
+            "decor_penalty",
+            "decor_iters",
+            "num_workers",
+            "decor_decay_every",
+        ):
             if getattr(self, key) < 0:
                 bad(key, "must be >= 0")
         if not 0 <= self.size_jitter < 1:
@@ -231,12 +263,20 @@ class TrainConfig:
             bad("adam_eps", "must be > 0 or null")
         if self.drct_variant not in DRCT_VARIANTS:
             bad("drct_variant", f"must be one of {', '.join(DRCT_VARIANTS)}")
-        if self.drct and self.tracker in learned and not hasattr(
-                trackers.tracker_class(self.tracker), "build_fusion"):
-            bad("drct", f"needs a matching tracker (backbone -> fusion -> head), not "
-                f"{self.tracker!r}")
-        if ((self.drct or self.domain_randomize) and self.recipe in RECIPES
-                and self.recipe_value("loss_reduction") == "pooled"):
+        if (
+            self.drct
+            and self.tracker in learned
+            and not hasattr(trackers.tracker_class(self.tracker), "build_fusion")
+        ):
+            bad(
+                "drct",
+                f"needs a matching tracker (backbone -> fusion -> head), not {self.tracker!r}",
+            )
+        if (
+            (self.drct or self.domain_randomize)
+            and self.recipe in RECIPES
+            and self.recipe_value("loss_reduction") == "pooled"
+        ):
             bad("loss_reduction", "DRCT and -RD add per-sample terms to the total: use 'sample'")
         if self.drct and self.domain_randomize:
             bad("domain_randomize", "is the -RD control of DRCT; use drct or domain_randomize")
@@ -280,8 +320,11 @@ class TrainConfig:
     def env_kwargs(self) -> dict[str, Any]:
         """The ``TrackingEnv`` options a tracker trained with this config must be evaluated
         with (its template composition and search region), as in training."""
-        mode = "first_and_previous_merged" if self.recipe_value("template_union") else (
-            "first_and_previous")
+        mode = (
+            "first_and_previous_merged"
+            if self.recipe_value("template_union")
+            else ("first_and_previous")
+        )
         return {"template_mode": mode, "search_enlargement": self.search_enlargement()}
 
     def make_kwargs(self) -> dict:
@@ -306,8 +349,17 @@ def checkpoint_tracker_kwargs(config: dict[str, Any]) -> dict[str, Any]:
 
 # Keys that may change between a run and its resumption (they do not change the result).
 IDENTITY_EXEMPT = frozenset(
-    {"epochs", "out", "num_workers", "num_threads", "progress", "device", "val_every",
-     "val_max_tracklets", "val_max_frames"}
+    {
+        "epochs",
+        "out",
+        "num_workers",
+        "num_threads",
+        "progress",
+        "device",
+        "val_every",
+        "val_max_tracklets",
+        "val_max_frames",
+    }
 )
 
 _FIELDS = {f.name: f for f in dataclasses.fields(TrainConfig)}

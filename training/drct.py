@@ -85,11 +85,14 @@ class DRCTConfig:
 
     def __post_init__(self) -> None:
         if self.variant not in DRCT_VARIANTS:
-            raise ValueError(f"unknown DRCT variant {self.variant!r}; valid variants: "
-                             f"{', '.join(DRCT_VARIANTS)}")
+            raise ValueError(
+                f"unknown DRCT variant {self.variant!r}; valid variants: {', '.join(DRCT_VARIANTS)}"
+            )
         if not self.contrast_weight >= 0 or not self.aux_weight >= 0:
-            raise ValueError(f"DRCT loss weights must be >= 0; got contrast_weight="
-                             f"{self.contrast_weight}, aux_weight={self.aux_weight}")
+            raise ValueError(
+                f"DRCT loss weights must be >= 0; got contrast_weight="
+                f"{self.contrast_weight}, aux_weight={self.aux_weight}"
+            )
         if not self.radius_m > 0:
             raise ValueError(f"DRCT radius_m must be > 0; got {self.radius_m}")
         if self.neighbours < 1:
@@ -101,8 +104,9 @@ class DRCTConfig:
 # --------------------------------------------------------------------------- randomisation
 
 
-def _randomize_cloud(points: np.ndarray, rng: np.random.Generator, dr: DomainRandomization
-                     ) -> np.ndarray:
+def _randomize_cloud(
+    points: np.ndarray, rng: np.random.Generator, dr: DomainRandomization
+) -> np.ndarray:
     """Algorithm 1 on one cloud ``(N, 3)`` resampled back to ``N`` points -> the source index
     ``(N,)`` of every output point in ``points`` (``-1``: an added noise point) and the points.
 
@@ -316,13 +320,20 @@ class DRCT(nn.Module):
         for (p_xyz, p_feat), (a_xyz, a_feat) in zip(primary, auxiliary, strict=True):
             if cfg.detach_aux:
                 a_xyz, a_feat = a_xyz.detach(), a_feat.detach()
-            terms.append(local_geometric_contrast(a_xyz, a_feat, p_xyz, p_feat, cfg.radius_m,
-                                                  cfg.neighbours))
+            terms.append(
+                local_geometric_contrast(a_xyz, a_feat, p_xyz, p_feat, cfg.radius_m, cfg.neighbours)
+            )
         contrast = torch.stack(terms).mean(0)
-        total = (losses["total"] + cfg.aux_weight * aux_losses["total"]
-                 + cfg.contrast_weight * contrast)
-        return outputs, {**losses, "total": total, "track": losses["total"],
-                         "aux_track": aux_losses["total"], "contrast": contrast}
+        total = (
+            losses["total"] + cfg.aux_weight * aux_losses["total"] + cfg.contrast_weight * contrast
+        )
+        return outputs, {
+            **losses,
+            "total": total,
+            "track": losses["total"],
+            "aux_track": aux_losses["total"],
+            "contrast": contrast,
+        }
 
 
 class DomainRandomizedTraining(nn.Module):
@@ -346,16 +357,27 @@ def build_hook(cfg, model: nn.Module) -> DRCT | DomainRandomizedTraining | None:
     """The training hook a :class:`training.config.TrainConfig` asks for (``drct`` /
     ``domain_randomize``), or ``None`` for plain training."""
     dr = DomainRandomization(
-        p_skip=cfg.dr_p_skip, p_step=cfg.dr_p_step, max_noise_ratio=cfg.dr_max_noise_ratio,
-        max_drop_ratio=cfg.dr_max_drop_ratio, jitter_m=cfg.dr_jitter_m,
+        p_skip=cfg.dr_p_skip,
+        p_step=cfg.dr_p_step,
+        max_noise_ratio=cfg.dr_max_noise_ratio,
+        max_drop_ratio=cfg.dr_max_drop_ratio,
+        jitter_m=cfg.dr_jitter_m,
     )
     if cfg.drct:
-        return DRCT(model, DRCTConfig(
-            variant=cfg.drct_variant, contrast_weight=cfg.drct_contrast_weight,
-            aux_weight=cfg.drct_aux_weight, radius_m=cfg.drct_radius_m,
-            neighbours=cfg.drct_neighbours, detach_aux=cfg.drct_detach_aux,
-            ffn_ratio=cfg.drct_ffn_ratio, randomization=dr, seed=cfg.seed,
-        ))
+        return DRCT(
+            model,
+            DRCTConfig(
+                variant=cfg.drct_variant,
+                contrast_weight=cfg.drct_contrast_weight,
+                aux_weight=cfg.drct_aux_weight,
+                radius_m=cfg.drct_radius_m,
+                neighbours=cfg.drct_neighbours,
+                detach_aux=cfg.drct_detach_aux,
+                ffn_ratio=cfg.drct_ffn_ratio,
+                randomization=dr,
+                seed=cfg.seed,
+            ),
+        )
     if cfg.domain_randomize:
         return DomainRandomizedTraining(dr, seed=cfg.seed)
     return None

@@ -245,13 +245,13 @@ def _check_indices(count: int, tracklets: Sequence[int] | None) -> list[int]:
     """The tracklet indices to run; ``ValueError`` for an env without tracklets or an index out
     of range (a report over nothing would be NaN)."""
     if count == 0:
-        raise ValueError("evaluate: the env holds no tracklets (check the split, the setting "
-                         "and the categories)")
+        raise ValueError(
+            "evaluate: the env holds no tracklets (check the split, the setting and the categories)"
+        )
     indices = list(range(count)) if tracklets is None else list(tracklets)
     bad = [i for i in indices if not 0 <= i < count]
     if bad:
-        raise ValueError(f"evaluate: tracklet indices {bad[:5]} out of range for {count} "
-                         "tracklets")
+        raise ValueError(f"evaluate: tracklet indices {bad[:5]} out of range for {count} tracklets")
     return indices
 
 

@@ -68,8 +68,7 @@ STATE_FORMAT = "pointtrack-finetune-state"
 RESIDUAL_FORMAT = "pointtrack-residual"
 FORMAT_VERSION = "1"
 #: Config fields that may change on ``--resume`` (how long and where it runs, not what).
-RESUMABLE = ("timesteps", "device", "threads", "save_every", "snapshot_every",
-             "val_max_tracklets")
+RESUMABLE = ("timesteps", "device", "threads", "save_every", "snapshot_every", "val_max_tracklets")
 
 
 class FinetuneError(ValueError):
@@ -126,25 +125,30 @@ class FinetuneConfig:
         from training.rl import ACTION_MODES, CRITICS, TRAIN_PARTS
 
         errors = []
-        for name, value, valid in (("algo", self.algo, ALGOS),
-                                   ("train_parts", self.train_parts, TRAIN_PARTS),
-                                   ("action_mode", self.action_mode, ACTION_MODES),
-                                   ("critic", self.critic, CRITICS),
-                                   ("reward", self.reward, REWARDS)):
+        for name, value, valid in (
+            ("algo", self.algo, ALGOS),
+            ("train_parts", self.train_parts, TRAIN_PARTS),
+            ("action_mode", self.action_mode, ACTION_MODES),
+            ("critic", self.critic, CRITICS),
+            ("reward", self.reward, REWARDS),
+        ):
             if value not in valid:
                 errors.append(f"{name} must be one of {list(valid)}, got {value!r}")
         for name in ("timesteps", "num_envs", "n_epochs", "threads", "save_every"):
             if getattr(self, name) < 1:
                 errors.append(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.n_steps < 2 or self.batch_size < 2:
-            errors.append(f"n_steps and batch_size must be >= 2, got {self.n_steps}, "
-                          f"{self.batch_size}")
+            errors.append(
+                f"n_steps and batch_size must be >= 2, got {self.n_steps}, {self.batch_size}"
+            )
         for name in ("clip_length", "warmup_rollouts", "snapshot_every"):
             if getattr(self, name) < 0:
                 errors.append(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.val_max_tracklets < 0:
-            errors.append(f"val_max_tracklets must be >= 1 (or 0 for no val check), got "
-                          f"{self.val_max_tracklets}")
+            errors.append(
+                f"val_max_tracklets must be >= 1 (or 0 for no val check), got "
+                f"{self.val_max_tracklets}"
+            )
         for name in ("lr", "tracker_lr", "clip_range", "max_grad_norm"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -206,16 +210,19 @@ def _read_meta(path: Path) -> dict[str, Any]:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             meta = dict(f.metadata() or {})
     except Exception as exc:
-        raise FinetuneError(f"cannot read {path}: not a safetensors file "
-                            f"({type(exc).__name__}: {exc})") from exc
+        raise FinetuneError(
+            f"cannot read {path}: not a safetensors file ({type(exc).__name__}: {exc})"
+        ) from exc
     if meta.get("format") != STATE_FORMAT:
-        raise FinetuneError(f"{path} is not a pointtrack finetune state "
-                            f"(format={meta.get('format')!r})")
+        raise FinetuneError(
+            f"{path} is not a pointtrack finetune state (format={meta.get('format')!r})"
+        )
     return json.loads(meta["state"])
 
 
-def check_out_dir(out: str | Path, cfg: FinetuneConfig, *, resume: bool = False,
-                  overwrite: bool = False) -> dict[str, Any] | None:
+def check_out_dir(
+    out: str | Path, cfg: FinetuneConfig, *, resume: bool = False, overwrite: bool = False
+) -> dict[str, Any] | None:
     """Refuse what would silently lose or mix results, before any data is built.
 
     Returns the saved state's metadata when resuming (None for a fresh run). A fresh run into
@@ -229,8 +236,17 @@ def check_out_dir(out: str | Path, cfg: FinetuneConfig, *, resume: bool = False,
     if out.exists() and not out.is_dir():
         raise FinetuneError(f"--out {out} exists and is not a directory")
     state = out / "state.safetensors"
-    held = [name for name in ("state.safetensors", "tracker.safetensors", "residual.safetensors",
-                              "log.jsonl", "config.json") if (out / name).exists()]
+    held = [
+        name
+        for name in (
+            "state.safetensors",
+            "tracker.safetensors",
+            "residual.safetensors",
+            "log.jsonl",
+            "config.json",
+        )
+        if (out / name).exists()
+    ]
     if resume:
         if cfg.algo != "ppo":
             raise FinetuneError("--resume is only available for --algo ppo")
@@ -238,21 +254,30 @@ def check_out_dir(out: str | Path, cfg: FinetuneConfig, *, resume: bool = False,
             raise FinetuneError(f"nothing to resume: {state} does not exist")
         meta = _read_meta(state)
         saved, given = meta["identity"], _identity(cfg)
-        diffs = [f"{k}: saved {saved.get(k)!r}, given {given.get(k)!r}"
-                 for k in sorted(set(saved) | set(given))
-                 if k not in RESUMABLE and saved.get(k) != given.get(k)]
+        diffs = [
+            f"{k}: saved {saved.get(k)!r}, given {given.get(k)!r}"
+            for k in sorted(set(saved) | set(given))
+            if k not in RESUMABLE and saved.get(k) != given.get(k)
+        ]
         if diffs:
-            raise FinetuneError(f"--resume refused: {out} holds a run with another tracker or "
-                                f"config ({'; '.join(diffs)})")
+            raise FinetuneError(
+                f"--resume refused: {out} holds a run with another tracker or "
+                f"config ({'; '.join(diffs)})"
+            )
         return meta
     if held and not overwrite:
         finished = False
         if state.is_file():
             finished = bool(_read_meta(state).get("finished"))
-        what = "a finished run" if finished or (out / "residual.safetensors").exists() \
+        what = (
+            "a finished run"
+            if finished or (out / "residual.safetensors").exists()
             else "an unfinished run"
-        raise FinetuneError(f"--out {out} holds {what} ({', '.join(held)}); pass --resume to "
-                            f"continue it or --overwrite to replace it")
+        )
+        raise FinetuneError(
+            f"--out {out} holds {what} ({', '.join(held)}); pass --resume to "
+            f"continue it or --overwrite to replace it"
+        )
     if held:
         for name in held:
             (out / name).unlink()
@@ -271,13 +296,13 @@ def _atomic_write_text(path: Path, text: str) -> None:
     tmp.replace(path)
 
 
-def save_state(path: Path, policy: torch.nn.Module, optimizer: torch.optim.Optimizer,
-               meta: dict[str, Any]) -> None:
+def save_state(
+    path: Path, policy: torch.nn.Module, optimizer: torch.optim.Optimizer, meta: dict[str, Any]
+) -> None:
     """Policy and optimizer tensors plus JSON ``meta`` into one safetensors file (atomic)."""
     from safetensors.torch import save_file
 
-    tensors = {f"policy.{k}": v.detach().cpu().contiguous()
-               for k, v in policy.state_dict().items()}
+    tensors = {f"policy.{k}": v.detach().cpu().contiguous() for k, v in policy.state_dict().items()}
     opt = optimizer.state_dict()
     for idx, entry in opt["state"].items():
         for key, value in entry.items():
@@ -286,13 +311,17 @@ def save_state(path: Path, policy: torch.nn.Module, optimizer: torch.optim.Optim
     groups = [{k: v for k, v in g.items()} for g in opt["param_groups"]]
     meta = {**meta, "optimizer_groups": groups}
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    save_file(tensors, str(tmp), metadata={"format": STATE_FORMAT, "version": FORMAT_VERSION,
-                                           "state": json.dumps(meta)})
+    save_file(
+        tensors,
+        str(tmp),
+        metadata={"format": STATE_FORMAT, "version": FORMAT_VERSION, "state": json.dumps(meta)},
+    )
     tmp.replace(path)
 
 
-def load_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any],
-                                          torch.Tensor, dict[str, Any]]:
+def load_state(
+    path: str | Path,
+) -> tuple[dict[str, torch.Tensor], dict[str, Any], torch.Tensor, dict[str, Any]]:
     """-> (policy state dict, optimizer state dict, torch RNG state, metadata); safetensors
     only (no unpickling)."""
     from safetensors import safe_open
@@ -304,7 +333,7 @@ def load_state(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any
         for key in f.keys():  # noqa: SIM118 - safe_open API
             tensor = f.get_tensor(key)
             if key.startswith("policy."):
-                policy[key[len("policy."):]] = tensor
+                policy[key[len("policy.") :]] = tensor
             elif key.startswith("optim."):
                 _, idx, name = key.split(".", 2)
                 state.setdefault(int(idx), {})[name] = tensor
@@ -344,9 +373,15 @@ def train_env_factory(cfg: FinetuneConfig) -> Callable[[], gym.Env]:
     setting = _setting(cfg)
     data = KittiTracking(_root(cfg), "train", list(setting.observed))
     # clips start anywhere in a tracklet (the env's start_frame / max_steps episode options)
-    base = TrackingEnv(data, setting=setting, categories=setting.observed, sampling="random",
-                       reward=cfg.reward, start_frame="random",
-                       max_steps=cfg.clip_length if cfg.clip_length > 0 else None)
+    base = TrackingEnv(
+        data,
+        setting=setting,
+        categories=setting.observed,
+        sampling="random",
+        reward=cfg.reward,
+        start_frame="random",
+        max_steps=cfg.clip_length if cfg.clip_length > 0 else None,
+    )
     return base.clone
 
 
@@ -364,8 +399,9 @@ def make_vec_env(make_env: Callable[[], gym.Env], num_envs: int, clip_length: in
     ``TimeLimit`` clips): the policy acts on one batch of ``num_envs`` per step."""
     from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor
 
-    return VecMonitor(DummyVecEnv([lambda: _wrap(make_env(), clip_length)
-                                   for _ in range(num_envs)]))
+    return VecMonitor(
+        DummyVecEnv([lambda: _wrap(make_env(), clip_length) for _ in range(num_envs)])
+    )
 
 
 # --------------------------------------------------------------------------- PPO
@@ -402,8 +438,15 @@ class _RunCallback:
 class _PPORun:
     """One PPO fine-tuning run (see :func:`finetune`)."""
 
-    def __init__(self, cfg: FinetuneConfig, out: Path, make_env: Callable[[], gym.Env],
-                 resume_meta: dict[str, Any] | None, progress: bool, log: Callable) -> None:
+    def __init__(
+        self,
+        cfg: FinetuneConfig,
+        out: Path,
+        make_env: Callable[[], gym.Env],
+        resume_meta: dict[str, Any] | None,
+        progress: bool,
+        log: Callable,
+    ) -> None:
         from stable_baselines3 import PPO
 
         from training.rl import TrackerPolicy
@@ -416,15 +459,29 @@ class _PPORun:
         self.rollout_steps = cfg.n_steps * cfg.num_envs
         self.env = make_vec_env(make_env, cfg.num_envs, cfg.clip_length)
         self.model = PPO(
-            TrackerPolicy, self.env, learning_rate=cfg.lr, n_steps=cfg.n_steps,
-            batch_size=cfg.batch_size, n_epochs=cfg.n_epochs, gamma=cfg.gamma,
-            gae_lambda=cfg.gae_lambda, clip_range=cfg.clip_range, ent_coef=cfg.ent_coef,
-            max_grad_norm=cfg.max_grad_norm, target_kl=cfg.target_kl, device=cfg.device,
-            seed=cfg.seed + 7919 * self.updates, verbose=0,
-            policy_kwargs={"tracker": cfg.tracker, "train_parts": cfg.train_parts,
-                           "log_std_init": cfg.log_std_init, "action_mode": cfg.action_mode,
-                           "critic": cfg.critic,
-                           "tracker_lr_scale": cfg.tracker_lr / cfg.lr if cfg.lr else 0.0},
+            TrackerPolicy,
+            self.env,
+            learning_rate=cfg.lr,
+            n_steps=cfg.n_steps,
+            batch_size=cfg.batch_size,
+            n_epochs=cfg.n_epochs,
+            gamma=cfg.gamma,
+            gae_lambda=cfg.gae_lambda,
+            clip_range=cfg.clip_range,
+            ent_coef=cfg.ent_coef,
+            max_grad_norm=cfg.max_grad_norm,
+            target_kl=cfg.target_kl,
+            device=cfg.device,
+            seed=cfg.seed + 7919 * self.updates,
+            verbose=0,
+            policy_kwargs={
+                "tracker": cfg.tracker,
+                "train_parts": cfg.train_parts,
+                "log_std_init": cfg.log_std_init,
+                "action_mode": cfg.action_mode,
+                "critic": cfg.critic,
+                "tracker_lr_scale": cfg.tracker_lr / cfg.lr if cfg.lr else 0.0,
+            },
         )
         self.policy = self.model.policy
         if state is not None:
@@ -476,23 +533,31 @@ class _PPORun:
         if self.cfg.snapshot_every and self.updates % self.cfg.snapshot_every == 0:
             import trackers
 
-            trackers.save(self.policy.tracker,
-                          self.out / "snapshots" / f"tracker-{self.model.num_timesteps:08d}"
-                                                   f".safetensors")
+            trackers.save(
+                self.policy.tracker,
+                self.out / "snapshots" / f"tracker-{self.model.num_timesteps:08d}.safetensors",
+            )
 
     def _non_finite(self, what: str) -> None:
-        kept = (f"the last good checkpoint (step {self.last_good}) is kept in "
-                f"{self.out / 'state.safetensors'}" if self.last_good is not None
-                else "no checkpoint was saved yet")
-        raise NonFiniteError(f"non-finite {what} at step {self.model.num_timesteps} "
-                             f"(update {self.updates}); stopped; {kept}")
+        kept = (
+            f"the last good checkpoint (step {self.last_good}) is kept in "
+            f"{self.out / 'state.safetensors'}"
+            if self.last_good is not None
+            else "no checkpoint was saved yet"
+        )
+        raise NonFiniteError(
+            f"non-finite {what} at step {self.model.num_timesteps} "
+            f"(update {self.updates}); stopped; {kept}"
+        )
 
     def _log_update(self, values: dict[str, Any]) -> None:
         eps = list(self.model.ep_info_buffer)
         wall = time.perf_counter() - self.t0
         steps = self.model.num_timesteps
         record = {
-            "kind": "train", "step": steps, "update": self.updates,
+            "kind": "train",
+            "step": steps,
+            "update": self.updates,
             "ep_reward": float(np.mean([e["r"] for e in eps])) if eps else None,
             "ep_len": float(np.mean([e["l"] for e in eps])) if eps else None,
             "iou": float(np.mean(self.ious)) if self.ious else None,
@@ -502,7 +567,7 @@ class _PPORun:
         }
         for key, value in values.items():
             if key.startswith("train/") and key not in ("train/learning_rate",):
-                record[key[len("train/"):]] = float(value)
+                record[key[len("train/") :]] = float(value)
         self.ious = []
         self.log_file.write(json.dumps(record) + "\n")
         self.log_file.flush()
@@ -511,12 +576,17 @@ class _PPORun:
             self.bar.set_postfix_str(
                 f"ep_reward {record['ep_reward'] or float('nan'):.2f} iou "
                 f"{record['iou'] or float('nan'):.3f} kl "
-                f"{float('nan') if kl is None else kl:.4f}")
+                f"{float('nan') if kl is None else kl:.4f}"
+            )
 
     def checkpoint(self, finished: bool = False) -> None:
-        meta = {"identity": _identity(self.cfg), "timesteps": self.model.num_timesteps,
-                "updates": self.updates, "n_updates": self.model._n_updates,
-                "finished": finished}
+        meta = {
+            "identity": _identity(self.cfg),
+            "timesteps": self.model.num_timesteps,
+            "updates": self.updates,
+            "n_updates": self.model._n_updates,
+            "finished": finished,
+        }
         save_state(self.out / "state.safetensors", self.policy, self.policy.optimizer, meta)
         self.last_good = self.model.num_timesteps
 
@@ -525,8 +595,11 @@ class _PPORun:
         path = self.out / "log.jsonl"
         if not path.exists():
             return
-        keep = [line for line in path.read_text().splitlines()
-                if line.strip() and json.loads(line).get("step", 0) <= self.steps_at_start]
+        keep = [
+            line
+            for line in path.read_text().splitlines()
+            if line.strip() and json.loads(line).get("step", 0) <= self.steps_at_start
+        ]
         _atomic_write_text(path, "".join(line + "\n" for line in keep))
 
     def run(self) -> FinetuneResult:
@@ -538,20 +611,25 @@ class _PPORun:
         if self.progress:
             from tqdm import tqdm
 
-            self.bar = tqdm(total=cfg.timesteps, initial=min(self.steps_at_start, cfg.timesteps),
-                            unit="step", desc="finetune ppo", dynamic_ncols=True)
+            self.bar = tqdm(
+                total=cfg.timesteps,
+                initial=min(self.steps_at_start, cfg.timesteps),
+                unit="step",
+                desc="finetune ppo",
+                dynamic_ncols=True,
+            )
         callback = _RunCallback.make(self)
         try:
             warmup_steps = cfg.warmup_rollouts * self.rollout_steps
-            for frozen, until in ((True, min(warmup_steps, cfg.timesteps)),
-                                  (False, cfg.timesteps)):
+            for frozen, until in ((True, min(warmup_steps, cfg.timesteps)), (False, cfg.timesteps)):
                 remaining = until - self.model.num_timesteps
                 if remaining <= 0:
                     continue
                 self.policy.freeze_actor(frozen)
                 try:
-                    self.model.learn(remaining, callback=callback, reset_num_timesteps=False,
-                                     progress_bar=False)
+                    self.model.learn(
+                        remaining, callback=callback, reset_num_timesteps=False, progress_bar=False
+                    )
                 except FloatingPointError as exc:
                     self._non_finite(f"policy output ({exc})")
                 self.after_update()
@@ -565,8 +643,15 @@ class _PPORun:
         self.checkpoint(finished=True)
         wall = time.perf_counter() - self.t0
         done = self.model.num_timesteps - self.steps_at_start
-        return FinetuneResult(self.out, path, self.model.num_timesteps, self.updates, wall,
-                              done / max(wall, 1e-9), None)
+        return FinetuneResult(
+            self.out,
+            path,
+            self.model.num_timesteps,
+            self.updates,
+            wall,
+            done / max(wall, 1e-9),
+            None,
+        )
 
 
 def finetune(
@@ -595,10 +680,19 @@ def finetune(
     except (TypeError, ValueError, FileNotFoundError) as exc:
         raise FinetuneError(str(exc)) from None
     if resume_meta and resume_meta.get("finished") and resume_meta["timesteps"] >= cfg.timesteps:
-        log(f"{out} already finished at step {resume_meta['timesteps']} (>= --timesteps "
-            f"{cfg.timesteps}); nothing to do")
-        return FinetuneResult(out, out / "tracker.safetensors", int(resume_meta["timesteps"]),
-                              int(resume_meta["updates"]), 0.0, 0.0, None)
+        log(
+            f"{out} already finished at step {resume_meta['timesteps']} (>= --timesteps "
+            f"{cfg.timesteps}); nothing to do"
+        )
+        return FinetuneResult(
+            out,
+            out / "tracker.safetensors",
+            int(resume_meta["timesteps"]),
+            int(resume_meta["updates"]),
+            0.0,
+            0.0,
+            None,
+        )
     torch.set_num_threads(cfg.threads)
     factory = make_env if make_env is not None else train_env_factory(cfg)
     out.mkdir(parents=True, exist_ok=True)
@@ -611,8 +705,10 @@ def finetune(
         result.val = val_check(cfg, base, load_result(out), out)
         for name in ("base", "finetuned"):
             rep = result.val[name]
-            log(f"{name}: val success {rep['success']:.2f} precision {rep['precision']:.2f} "
-                f"({result.val['frames']} frames, {result.val['tracklets']} tracklets)")
+            log(
+                f"{name}: val success {rep['success']:.2f} precision {rep['precision']:.2f} "
+                f"({result.val['frames']} frames, {result.val['tracklets']} tracklets)"
+            )
     return result
 
 
@@ -705,8 +801,11 @@ def _residual_policy(log_std_init: float):
 
     return ActorCriticPolicy(
         spaces.Box(-np.inf, np.inf, (FEATURE_DIM,), np.float32),
-        spaces.Box(-1.0, 1.0, (4,), np.float32), lambda _: 0.0,
-        net_arch=list(RESIDUAL_NET_ARCH), log_std_init=log_std_init)
+        spaces.Box(-1.0, 1.0, (4,), np.float32),
+        lambda _: 0.0,
+        net_arch=list(RESIDUAL_NET_ARCH),
+        log_std_init=log_std_init,
+    )
 
 
 class ResidualTracker:
@@ -717,8 +816,14 @@ class ResidualTracker:
     is refused, never unpickled.
     """
 
-    def __init__(self, base: Any, policy: Any, scale=DEFAULT_SCALE, name: str = "finetuned",
-                 log_std_init: float = -2.0) -> None:
+    def __init__(
+        self,
+        base: Any,
+        policy: Any,
+        scale=DEFAULT_SCALE,
+        name: str = "finetuned",
+        log_std_init: float = -2.0,
+    ) -> None:
         self.base = base
         self.policy = policy
         self.scale = np.asarray(scale, dtype=np.float32)
@@ -732,15 +837,22 @@ class ResidualTracker:
         from trackers.config import config_to_dict
 
         path = Path(path)
-        tensors = {f"policy.{k}": v.detach().cpu().contiguous()
-                   for k, v in self.policy.state_dict().items()}
-        tensors.update({f"base.{k}": v.detach().cpu().contiguous()
-                        for k, v in self.base.state_dict().items()})
-        meta = {"format": RESIDUAL_FORMAT, "version": FORMAT_VERSION,
-                "base_tracker": self.base.name,
-                "base_config": json.dumps(config_to_dict(self.base.config), sort_keys=True),
-                "scale": json.dumps([float(s) for s in self.scale]), "name": self.name,
-                "log_std_init": json.dumps(self.log_std_init)}
+        tensors = {
+            f"policy.{k}": v.detach().cpu().contiguous()
+            for k, v in self.policy.state_dict().items()
+        }
+        tensors.update(
+            {f"base.{k}": v.detach().cpu().contiguous() for k, v in self.base.state_dict().items()}
+        )
+        meta = {
+            "format": RESIDUAL_FORMAT,
+            "version": FORMAT_VERSION,
+            "base_tracker": self.base.name,
+            "base_config": json.dumps(config_to_dict(self.base.config), sort_keys=True),
+            "scale": json.dumps([float(s) for s in self.scale]),
+            "name": self.name,
+            "log_std_init": json.dumps(self.log_std_init),
+        }
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
         save_file(tensors, str(tmp), metadata=meta)
         tmp.replace(path)
@@ -772,13 +884,17 @@ class ResidualTracker:
         path = Path(path)
         if path.is_dir():
             if not (path / "residual.safetensors").is_file() and (path / "ppo.zip").exists():
-                raise ValueError(f"{path} holds an SB3 ppo.zip (older pointtrack): refused, "
-                                 f"because loading it unpickles (and can run code); re-run "
-                                 f"`pointtrack finetune --algo residual`")
+                raise ValueError(
+                    f"{path} holds an SB3 ppo.zip (older pointtrack): refused, "
+                    f"because loading it unpickles (and can run code); re-run "
+                    f"`pointtrack finetune --algo residual`"
+                )
             path = path / "residual.safetensors"
         if path.suffix == ".zip":
-            raise ValueError(f"{path}: SB3 zips are refused (loading one unpickles); pass the "
-                             f"run's residual.safetensors")
+            raise ValueError(
+                f"{path}: SB3 zips are refused (loading one unpickles); pass the "
+                f"run's residual.safetensors"
+            )
         if not path.is_file():
             raise FileNotFoundError(f"no residual checkpoint at {path}")
         try:
@@ -786,21 +902,27 @@ class ResidualTracker:
                 meta = dict(f.metadata() or {})
                 state = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open API
         except Exception as exc:
-            raise ValueError(f"cannot read residual checkpoint {path}: not a safetensors file "
-                             f"({type(exc).__name__}: {exc})") from exc
+            raise ValueError(
+                f"cannot read residual checkpoint {path}: not a safetensors file "
+                f"({type(exc).__name__}: {exc})"
+            ) from exc
         if meta.get("format") != RESIDUAL_FORMAT:
-            raise ValueError(f"{path} is not a pointtrack residual checkpoint "
-                             f"(format={meta.get('format')!r})")
+            raise ValueError(
+                f"{path} is not a pointtrack residual checkpoint (format={meta.get('format')!r})"
+            )
         base = trackers.make(meta["base_tracker"], **json.loads(meta["base_config"]))
-        base.load_state_dict({k[5:]: v for k, v in state.items() if k.startswith("base.")},
-                             strict=True)
+        base.load_state_dict(
+            {k[5:]: v for k, v in state.items() if k.startswith("base.")}, strict=True
+        )
         log_std = float(json.loads(meta["log_std_init"]))
         policy = _residual_policy(log_std)
-        policy.load_state_dict({k[7:]: v for k, v in state.items() if k.startswith("policy.")},
-                               strict=True)
+        policy.load_state_dict(
+            {k[7:]: v for k, v in state.items() if k.startswith("policy.")}, strict=True
+        )
         policy.set_training_mode(False)
-        return cls(base.eval(), policy, json.loads(meta["scale"]), name=meta["name"],
-                   log_std_init=log_std)
+        return cls(
+            base.eval(), policy, json.loads(meta["scale"]), name=meta["name"], log_std_init=log_std
+        )
 
     def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         """One observation -> ``(4,)``; a batch -> ``(B, 4)``."""
@@ -809,15 +931,17 @@ class ResidualTracker:
         if single:
             feats = features(obs, base)[None]
         else:
-            feats = np.stack([features({k: v[i] for k, v in obs.items()}, base[i])
-                              for i in range(len(base))])
+            feats = np.stack(
+                [features({k: v[i] for k, v in obs.items()}, base[i]) for i in range(len(base))]
+            )
         r, _ = self.policy.predict(feats, deterministic=True)
         action = base + self.scale * np.clip(r, -1, 1)
         return action[0] if single else action
 
 
-def _finetune_residual(cfg: FinetuneConfig, base: Any, out: Path,
-                       make_env: Callable[[], gym.Env]) -> FinetuneResult:
+def _finetune_residual(
+    cfg: FinetuneConfig, base: Any, out: Path, make_env: Callable[[], gym.Env]
+) -> FinetuneResult:
     """PPO on :class:`ResidualTrackingEnv` (one env; the base tracker frozen)."""
     from stable_baselines3 import PPO
 
@@ -826,16 +950,36 @@ def _finetune_residual(cfg: FinetuneConfig, base: Any, out: Path,
         p.requires_grad_(False)
     t0 = time.perf_counter()
     env = ResidualTrackingEnv(make_env(), base, DEFAULT_SCALE)
-    model = PPO("MlpPolicy", env, n_steps=cfg.n_steps, batch_size=min(cfg.batch_size, cfg.n_steps),
-                n_epochs=cfg.n_epochs, seed=cfg.seed, learning_rate=cfg.lr, verbose=0,
-                device=cfg.device, policy_kwargs={"net_arch": list(RESIDUAL_NET_ARCH),
-                                                  "log_std_init": cfg.log_std_init})
+    model = PPO(
+        "MlpPolicy",
+        env,
+        n_steps=cfg.n_steps,
+        batch_size=min(cfg.batch_size, cfg.n_steps),
+        n_epochs=cfg.n_epochs,
+        seed=cfg.seed,
+        learning_rate=cfg.lr,
+        verbose=0,
+        device=cfg.device,
+        policy_kwargs={"net_arch": list(RESIDUAL_NET_ARCH), "log_std_init": cfg.log_std_init},
+    )
     model.learn(total_timesteps=cfg.timesteps)
     if _finite_params(model.policy) is not None:
         raise NonFiniteError(f"non-finite residual weights at step {model.num_timesteps}")
-    tuned = ResidualTracker(base, model.policy, DEFAULT_SCALE, name=f"{cfg.tracker}-residual",
-                            log_std_init=cfg.log_std_init)
+    tuned = ResidualTracker(
+        base,
+        model.policy,
+        DEFAULT_SCALE,
+        name=f"{cfg.tracker}-residual",
+        log_std_init=cfg.log_std_init,
+    )
     path = tuned.save(out / "residual.safetensors")
     wall = time.perf_counter() - t0
-    return FinetuneResult(out, path, model.num_timesteps, model._n_updates, wall,
-                          model.num_timesteps / max(wall, 1e-9), None)
+    return FinetuneResult(
+        out,
+        path,
+        model.num_timesteps,
+        model._n_updates,
+        wall,
+        model.num_timesteps / max(wall, 1e-9),
+        None,
+    )

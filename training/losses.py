@@ -37,16 +37,21 @@ SumOverRanks = Callable[[torch.Tensor], torch.Tensor]
 """An in-place all-reduce sum over the DDP processes (returns its argument)."""
 
 
-def pooled(per_sample: torch.Tensor, counts: torch.Tensor,
-           weights: torch.Tensor | None = None) -> torch.Tensor:
+def pooled(
+    per_sample: torch.Tensor, counts: torch.Tensor, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """``sum_i w_i c_i l_i / sum_i w_i c_i`` of per-sample means ``l (B,)`` over ``c (B,)``
     elements each, weights ``w (B,)`` (1 when None); 0 when no element counts."""
     return _pooled_terms([per_sample], [counts], weights)[0]
 
 
-def _pooled_terms(per_sample: list[torch.Tensor], counts: list[torch.Tensor],
-                  weights: torch.Tensor | None, sum_over_ranks: SumOverRanks | None = None,
-                  world: int = 1) -> torch.Tensor:
+def _pooled_terms(
+    per_sample: list[torch.Tensor],
+    counts: list[torch.Tensor],
+    weights: torch.Tensor | None,
+    sum_over_ranks: SumOverRanks | None = None,
+    world: int = 1,
+) -> torch.Tensor:
     """The pooled value ``(K,)`` of K terms; with ``sum_over_ranks`` the denominators are the
     whole DDP batch's (one all-reduce) and the numerators scaled by ``world``, so the gradient
     average DDP takes is the pooled loss of the global batch."""
@@ -64,8 +69,9 @@ def _pooled_terms(per_sample: list[torch.Tensor], counts: list[torch.Tensor],
     return torch.where(den > 0, num / den.clamp_min(torch.finfo(den.dtype).tiny), num * 0.0)
 
 
-def loss_counts(model: torch.nn.Module, outputs: Mapping[str, torch.Tensor],
-                targets: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def loss_counts(
+    model: torch.nn.Module, outputs: Mapping[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
+) -> dict[str, torch.Tensor]:
     """The element counts ``c_ik (B,)`` of every loss term of a matching tracker (P2B, BAT,
     GPT: the masks of :func:`trackers.head.head_losses` and the trackers' extra terms)."""
     seed_labels = torch.gather(targets["search_labels"].float(), 1, outputs["seed_idx"])
@@ -83,15 +89,21 @@ def loss_counts(model: torch.nn.Module, outputs: Mapping[str, torch.Tensor],
         "box_cloud": seed_labels.sum(1),
     }
     if "template_votes" in outputs:
-        counts["template_vote"] = torch.full((b,), float(outputs["template_votes"].shape[1]),
-                                             device=seed_labels.device)
+        counts["template_vote"] = torch.full(
+            (b,), float(outputs["template_votes"].shape[1]), device=seed_labels.device
+        )
     return counts
 
 
-def pooled_objective(model: torch.nn.Module, losses: Mapping[str, torch.Tensor],
-                     outputs: Mapping[str, torch.Tensor], targets: Mapping[str, torch.Tensor],
-                     weights: torch.Tensor | None = None,
-                     sum_over_ranks: SumOverRanks | None = None, world: int = 1) -> torch.Tensor:
+def pooled_objective(
+    model: torch.nn.Module,
+    losses: Mapping[str, torch.Tensor],
+    outputs: Mapping[str, torch.Tensor],
+    targets: Mapping[str, torch.Tensor],
+    weights: torch.Tensor | None = None,
+    sum_over_ranks: SumOverRanks | None = None,
+    world: int = 1,
+) -> torch.Tensor:
     """The ``"pooled"`` objective (module docstring) of ``model.loss``'s per-sample ``losses``;
     under DDP (``sum_over_ranks``: an in-place all-reduce sum, ``world`` processes) pooled over
     the global batch."""
@@ -99,15 +111,17 @@ def pooled_objective(model: torch.nn.Module, losses: Mapping[str, torch.Tensor],
 
     if not isinstance(model, MatchingTracker):
         total = losses["total"]
-        return _pooled_terms([total], [torch.ones_like(total)], weights, sum_over_ranks,
-                             world)[0]
+        return _pooled_terms([total], [torch.ones_like(total)], weights, sum_over_ranks, world)[0]
     counts = loss_counts(model, outputs, targets)
     loss_weights = model.config.loss_weights
     missing = sorted(k for k in loss_weights if k not in counts)
     if missing:
-        raise KeyError(f"pooled loss: no element counts for terms {', '.join(missing)} of "
-                       f"{type(model).__name__}")
+        raise KeyError(
+            f"pooled loss: no element counts for terms {', '.join(missing)} of "
+            f"{type(model).__name__}"
+        )
     keys = list(loss_weights)
-    values = _pooled_terms([losses[k] for k in keys], [counts[k] for k in keys], weights,
-                           sum_over_ranks, world)
+    values = _pooled_terms(
+        [losses[k] for k in keys], [counts[k] for k in keys], weights, sum_over_ranks, world
+    )
     return sum(loss_weights[k] * values[i] for i, k in enumerate(keys))

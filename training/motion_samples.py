@@ -68,8 +68,9 @@ def _wrap(yaw: float) -> float:
     return (yaw + math.pi) % (2 * math.pi) - math.pi
 
 
-def augment_frame(points: np.ndarray, box: np.ndarray, rng: np.random.Generator
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def augment_frame(
+    points: np.ndarray, box: np.ndarray, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Open3DSOT's motion augmentation of one frame: the points ``(N, 3)`` inside ``box`` ``(7,)``
     scaled 1.25 and the box moved by one random rigid transform in the box's frame (flip x / y,
     rotation ``U(-10, 10)`` deg, translation ``U(-0.3, 0.3)`` m) -> (points ``(N, 3)``, box
@@ -99,8 +100,9 @@ def augment_frame(points: np.ndarray, box: np.ndarray, rng: np.random.Generator
 
 
 def _reach_m(box: np.ndarray) -> float:
-    return math.hypot(0.5 * SEARCH_SCALE * box[3] + SEARCH_OFFSET_M,
-                      0.5 * SEARCH_SCALE * box[4] + SEARCH_OFFSET_M)
+    return math.hypot(
+        0.5 * SEARCH_SCALE * box[3] + SEARCH_OFFSET_M, 0.5 * SEARCH_SCALE * box[4] + SEARCH_OFFSET_M
+    )
 
 
 def _near(points: np.ndarray, centre: np.ndarray, r: float) -> np.ndarray:
@@ -126,8 +128,15 @@ class MotionSamples(Dataset):
     batch_keys = BATCH_KEYS
     target_keys = TARGET_KEYS
 
-    def __init__(self, tracklets: Sequence, *, candidates_per_frame: int = 4, seed: int = 0,
-                 augment: bool = True, search_size: int = SEARCH_SIZE) -> None:
+    def __init__(
+        self,
+        tracklets: Sequence,
+        *,
+        candidates_per_frame: int = 4,
+        seed: int = 0,
+        augment: bool = True,
+        search_size: int = SEARCH_SIZE,
+    ) -> None:
         self.tracklets = [tr for tr in tracklets if len(tr) >= 2]
         if not self.tracklets:
             raise ValueError("no tracklets with at least 2 frames to build training samples from")
@@ -173,21 +182,26 @@ class MotionSamples(Dataset):
             source = int(rng.integers(len(self)))
         raise AssertionError("unreachable: the last attempt always returns a sample")
 
-    def _build(self, index: int, rng: np.random.Generator, last: bool
-               ) -> dict[str, torch.Tensor] | None:
+    def _build(
+        self, index: int, rng: np.random.Generator, last: bool
+    ) -> dict[str, torch.Tensor] | None:
         k, t, cand = self.locate(index)
         tr = self.tracklets[k]
         boxes = np.asarray(tr.boxes, dtype=np.float64)
         prev_gt, gt, size0 = boxes[t - 1].copy(), boxes[t].copy(), boxes[0][3:6]
         prev_pts, cur_pts = tr.points(t - 1), tr.points(t)
-        if not last and int(points_in_box(_near(prev_pts, prev_gt, _reach_m(prev_gt)), prev_gt)
-                            .sum()) <= MIN_PREVIOUS_TARGET_POINTS:
+        if (
+            not last
+            and int(points_in_box(_near(prev_pts, prev_gt, _reach_m(prev_gt)), prev_gt).sum())
+            <= MIN_PREVIOUS_TARGET_POINTS
+        ):
             return None
         # only points that can reach the crop (or the augmented boxes) are transformed
         r = _reach_m(np.r_[prev_gt[:3], size0, prev_gt[6]]) + REF_SHIFT_M + 1.0
         prev_pts = _near(prev_pts, prev_gt, r + np.hypot(*prev_gt[3:5]))
-        cur_pts = _near(cur_pts, prev_gt, r + np.hypot(*(gt[:2] - prev_gt[:2]))
-                        + np.hypot(*gt[3:5]))
+        cur_pts = _near(
+            cur_pts, prev_gt, r + np.hypot(*(gt[:2] - prev_gt[:2])) + np.hypot(*gt[3:5])
+        )
         if self.augment:
             prev_pts, prev_gt = augment_frame(prev_pts, prev_gt, rng)
             cur_pts, gt = augment_frame(cur_pts, gt, rng)
@@ -205,8 +219,12 @@ class MotionSamples(Dataset):
         m_p, m_c = resample_into([prev_crop, cur_crop], [previous, search], rng)
         prev_box = boxes_in_frame(prev_gt, ref)
         box = boxes_in_frame(gt, ref)
-        labels = np.concatenate([points_in_box(previous, prev_box, LABEL_SCALE) & (m_p > 0),
-                                 points_in_box(search, box, LABEL_SCALE) & (m_c > 0)])
+        labels = np.concatenate(
+            [
+                points_in_box(previous, prev_box, LABEL_SCALE) & (m_p > 0),
+                points_in_box(search, box, LABEL_SCALE) & (m_c > 0),
+            ]
+        )
         moving = float(np.linalg.norm(gt[:3] - prev_gt[:3]) > MOTION_THRESHOLD_M)
         points = torch.from_numpy(np.stack([previous, search]))
         boxes = torch.from_numpy(np.stack([_box4(prev_box), _box4(box)]))

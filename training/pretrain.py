@@ -6,7 +6,8 @@ SAM (-S).
   of the samples (chosen from ``(seed, epoch)``).
 * -U minimises the mean per-sample loss; -W the weighted sum ``sum_m w_m L_m`` with the weights of
   :class:`training.weighting.FeatureDecorrelation` learned on the detached pooled fused features
-  of the same forward pass (Algorithm 1 of ``000_…``); -S takes SAM steps (:mod:`training.sam`).
+  of the same forward pass (Algorithm 1 of Tian et al. (TIP 2024)); -S takes SAM steps
+  (:mod:`training.sam`).
 * Validation every ``val_every`` epochs: the env's OPE Success/Precision on the val split,
   through ``training.evaluate.evaluate``, on the setting's **observed** categories only (the unseen
   ones are never looked at before test). The checkpoint with the best val Success is kept.
@@ -136,30 +137,49 @@ def default_train_data(cfg: TrainConfig):
     from training.samples import TrackingSamples, load_tracklets
 
     tracklets, _, root = load_tracklets(
-        cfg.dataset, "train", setting=cfg.setting, category=cfg.category, preset=cfg.preset,
-        sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
+        cfg.dataset,
+        "train",
+        setting=cfg.setting,
+        category=cfg.category,
+        preset=cfg.preset,
+        sensor=cfg.sensor,
+        world_seed=cfg.world_seed,
+        data_root=cfg.data_root,
         version=cfg.nuscenes_version,
     )
     if getattr(trackers.tracker_class(cfg.tracker), "sample_recipe", None) == "motion":
         from training.motion_samples import MotionSamples
 
         if cfg.size_jitter > 0:
-            raise TrainingError(f"size_jitter={cfg.size_jitter}: the motion samples of "
-                                f"{cfg.tracker} have no object resizing; use 0")
-        data = MotionSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame,
-                             seed=cfg.seed)
+            raise TrainingError(
+                f"size_jitter={cfg.size_jitter}: the motion samples of "
+                f"{cfg.tracker} have no object resizing; use 0"
+            )
+        data = MotionSamples(
+            tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed
+        )
         data.root = str(root)
         return data
     recipe = cfg.recipe_values()
-    data = TrackingSamples(tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed,
-                           size_jitter=cfg.size_jitter, search_enlargement=cfg.search_enlargement(),
-                           **{k: recipe[k] for k in SAMPLE_RECIPE_KEYS})
+    data = TrackingSamples(
+        tracklets,
+        candidates_per_frame=cfg.candidates_per_frame,
+        seed=cfg.seed,
+        size_jitter=cfg.size_jitter,
+        search_enlargement=cfg.search_enlargement(),
+        **{k: recipe[k] for k in SAMPLE_RECIPE_KEYS},
+    )
     data.root = str(root)  # logged: a synthetic world's folder name carries its generator hash
     return data
 
 
-SAMPLE_RECIPE_KEYS = ("zero_offset_candidate", "min_crop_points", "template_union",
-                      "frame0_samples", "limit_box")
+SAMPLE_RECIPE_KEYS = (
+    "zero_offset_candidate",
+    "min_crop_points",
+    "template_union",
+    "frame0_samples",
+    "limit_box",
+)
 """The recipe items that are ``TrackingSamples`` options."""
 
 
@@ -180,8 +200,14 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
 
     st = class_specific(cfg.category) if cfg.category else get_setting(cfg.setting)
     tracklets, _, _ = load_tracklets(
-        cfg.dataset, "val", setting=cfg.setting, category=cfg.category, preset=cfg.preset,
-        sensor=cfg.sensor, world_seed=cfg.world_seed, data_root=cfg.data_root,
+        cfg.dataset,
+        "val",
+        setting=cfg.setting,
+        category=cfg.category,
+        preset=cfg.preset,
+        sensor=cfg.sensor,
+        world_seed=cfg.world_seed,
+        data_root=cfg.data_root,
         version=cfg.nuscenes_version,
     )  # observed categories only: model selection never sees the unseen ones
     if cfg.val_max_tracklets is not None and len(tracklets) > cfg.val_max_tracklets:
@@ -196,9 +222,14 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
         import gymnasium as gym
 
         def make_env():
-            return TrackingEnv(holder, setting=st, categories=st.observed, sampling="sequential",
-                               observation_keys=observation_keys_for([model]),
-                               **cfg.env_kwargs())
+            return TrackingEnv(
+                holder,
+                setting=st,
+                categories=st.observed,
+                sampling="sequential",
+                observation_keys=observation_keys_for([model]),
+                **cfg.env_kwargs(),
+            )
 
         env = gym.vector.SyncVectorEnv([make_env] * n_envs) if n_envs > 1 else make_env()
         try:
@@ -219,8 +250,10 @@ class _Tracklets:
 
 def _summarise_report(report: dict[str, Any]) -> dict[str, float]:
     """Mean Success / Precision of an :func:`training.evaluate.evaluate` report."""
-    return {"success": float(report["mean"]["success"]),
-            "precision": float(report["mean"]["precision"])}
+    return {
+        "success": float(report["mean"]["success"]),
+        "precision": float(report["mean"]["precision"]),
+    }
 
 
 # --------------------------------------------------------------------------- the trainer
@@ -278,16 +311,20 @@ class Trainer:
             self.net = DistributedDataParallel(self.model, find_unused_parameters=True)
         self.data = train_data if train_data is not None else default_train_data(cfg)
         # the batch / target keys of the sample recipe (the motion samples' differ)
-        self._sample_keys = (getattr(self.data, "batch_keys", BATCH_KEYS),
-                             getattr(self.data, "target_keys", TARGET_KEYS))
+        self._sample_keys = (
+            getattr(self.data, "batch_keys", BATCH_KEYS),
+            getattr(self.data, "target_keys", TARGET_KEYS),
+        )
         if len(self.data) < cfg.batch_size:
             raise TrainingError(
                 f"only {len(self.data)} training samples, fewer than one batch of {cfg.batch_size}"
             )
         self.base_opt = torch.optim.Adam(
             [*self.model.parameters(), *(self.drct.parameters() if self.drct else [])],
-            lr=cfg.lr, weight_decay=cfg.weight_decay,
-            betas=(cfg.recipe_value("adam_beta1"), 0.999), eps=cfg.recipe_value("adam_eps"),
+            lr=cfg.lr,
+            weight_decay=cfg.weight_decay,
+            betas=(cfg.recipe_value("adam_beta1"), 0.999),
+            eps=cfg.recipe_value("adam_eps"),
         )
         self.pooled = cfg.recipe_value("loss_reduction") == "pooled"
         self.scheduler = torch.optim.lr_scheduler.StepLR(
@@ -297,10 +334,16 @@ class Trainer:
         self.decor = None
         if cfg.weighting == "decorrelation":
             self.decor = FeatureDecorrelation(
-                n_functions=cfg.rff_functions, iterations=cfg.decor_iters, lr=cfg.decor_lr,
-                decay_every=cfg.decor_decay_every, momentum=cfg.decor_momentum,
-                penalty=cfg.decor_penalty, use_memory=cfg.decor_memory,
-                memory_ratio=cfg.decor_memory_ratio, memory_size=cfg.batch_size, seed=cfg.seed,
+                n_functions=cfg.rff_functions,
+                iterations=cfg.decor_iters,
+                lr=cfg.decor_lr,
+                decay_every=cfg.decor_decay_every,
+                momentum=cfg.decor_momentum,
+                penalty=cfg.decor_penalty,
+                use_memory=cfg.decor_memory,
+                memory_ratio=cfg.decor_memory_ratio,
+                memory_size=cfg.batch_size,
+                seed=cfg.seed,
             )
         if val_fn is None:
             val_fn = default_val_fn(cfg) if self.main else False
@@ -321,14 +364,16 @@ class Trainer:
 
         path = find_checkpoint(source)
         if path is None:
-            raise TrainingError(f"init_weights={source!r}: no such checkpoint file or shipped "
-                                f"checkpoint name")
+            raise TrainingError(
+                f"init_weights={source!r}: no such checkpoint file or shipped checkpoint name"
+            )
         try:
             start = load_file(path, expect=self.cfg.tracker)
         except (ValueError, FileNotFoundError) as exc:
             raise TrainingError(f"init_weights={source!r}: {exc}") from exc
-        details = config_differences(config_to_dict(start.config),
-                                     config_to_dict(self.model.config), "run")
+        details = config_differences(
+            config_to_dict(start.config), config_to_dict(self.model.config), "run"
+        )
         if details:
             raise TrainingError(f"init_weights={source!r} has another tracker config ({details})")
         self.model.load_state_dict(start.state_dict())
@@ -431,8 +476,12 @@ class Trainer:
                 subset, num_replicas=self.world, rank=self.rank, shuffle=False, drop_last=True
             )
         return DataLoader(
-            subset, batch_size=self.local_batch, sampler=sampler, shuffle=False,
-            num_workers=cfg.num_workers, drop_last=True,
+            subset,
+            batch_size=self.local_batch,
+            sampler=sampler,
+            shuffle=False,
+            num_workers=cfg.num_workers,
+            drop_last=True,
         )
 
     def _gather_features(self, z: torch.Tensor) -> torch.Tensor:
@@ -455,12 +504,18 @@ class Trainer:
         local = w_global[self.rank :: self.world] if self.world > 1 else w_global
         return local.to(self.device)
 
-    def _objective(self, losses: dict[str, torch.Tensor], outputs: dict[str, torch.Tensor],
-                   targets: dict[str, torch.Tensor], weights: torch.Tensor | None) -> torch.Tensor:
+    def _objective(
+        self,
+        losses: dict[str, torch.Tensor],
+        outputs: dict[str, torch.Tensor],
+        targets: dict[str, torch.Tensor],
+        weights: torch.Tensor | None,
+    ) -> torch.Tensor:
         if self.pooled:  # training.losses: pooled over the global batch under DDP
             reduce = self._sum_over_ranks if self.world > 1 else None
-            return pooled_objective(self.model, losses, outputs, targets, weights, reduce,
-                                    self.world)
+            return pooled_objective(
+                self.model, losses, outputs, targets, weights, reduce, self.world
+            )
         per_sample = losses["total"]
         if weights is None:
             return per_sample.mean()
@@ -481,13 +536,15 @@ class Trainer:
         terms = [k for k, v in losses.items() if not torch.isfinite(v.detach()).all()]
         raise TrainingError(
             f"non-finite loss at step {self.step} (epoch {self.epoch + 1}) in terms "
-            f"{', '.join(terms)}: " + "; ".join(names[:10])
+            f"{', '.join(terms)}: "
+            + "; ".join(names[:10])
             + (f" and {len(names) - 10} more" if len(names) > 10 else "")
             + f". The last good checkpoint ({self.out / 'last.pt'}) is left as it was."
         )
 
-    def _forward_losses(self, batch: dict[str, torch.Tensor], targets: dict[str, torch.Tensor]
-                        ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+    def _forward_losses(
+        self, batch: dict[str, torch.Tensor], targets: dict[str, torch.Tensor]
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
         """The tracker's outputs and per-sample losses; with DRCT / -RD through its hook."""
         if self.drct is not None:
             return self.drct.forward_losses(self.net, self.model, batch, targets, self.step)
@@ -510,8 +567,12 @@ class Trainer:
         if self.main and cfg.progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{cfg.epochs}", leave=False,
-                       dynamic_ncols=True)
+            bar = tqdm(
+                total=len(loader),
+                desc=f"epoch {epoch + 1}/{cfg.epochs}",
+                leave=False,
+                dynamic_ncols=True,
+            )
         t0 = time.perf_counter()
         for sample in loader:
             batch, targets, indices = split_batch(sample, self.device, *self._sample_keys)
@@ -522,6 +583,7 @@ class Trainer:
             self.base_opt.zero_grad(set_to_none=True)
             loss.backward()
             if self.sam is not None:
+
                 def closure(batch=batch, targets=targets, weights=weights):
                     out2, losses2 = self._forward_losses(batch, targets)
                     l2 = self._objective(losses2, out2, targets, weights)
@@ -553,11 +615,21 @@ class Trainer:
                 bar.set_postfix({k: f"{running[k]:.3f}" for k in list(running)[:5]})
                 bar.update(1)
             if self.main and not cfg.progress and self.step % 25 == 0:
-                print(f"epoch {epoch + 1} step {self.step} "
-                      + " ".join(f"{k}={running[k]:.4g}" for k in running), flush=True)
+                print(
+                    f"epoch {epoch + 1} step {self.step} "
+                    + " ".join(f"{k}={running[k]:.4g}" for k in running),
+                    flush=True,
+                )
             if self.main and (self.step % 10 == 0):
-                self._write({"kind": "train", "step": self.step, "epoch": epoch + 1,
-                             "lr": self.base_opt.param_groups[0]["lr"], **values})
+                self._write(
+                    {
+                        "kind": "train",
+                        "step": self.step,
+                        "epoch": epoch + 1,
+                        "lr": self.base_opt.param_groups[0]["lr"],
+                        **values,
+                    }
+                )
         if bar is not None:
             bar.close()
         wall = time.perf_counter() - t0
@@ -605,9 +677,14 @@ class Trainer:
             self.load(last)
             if self.main:
                 dropped = truncate_log(self.out / "log.jsonl", self.step)
-                print(f"resuming {last}: {self.epoch} epochs done, step {self.step}"
-                      + (f" ({dropped} log records of the interrupted attempt dropped)"
-                         if dropped else ""))
+                print(
+                    f"resuming {last}: {self.epoch} epochs done, step {self.step}"
+                    + (
+                        f" ({dropped} log records of the interrupted attempt dropped)"
+                        if dropped
+                        else ""
+                    )
+                )
         elif resume and self.main:
             # the log of an attempt killed before its first checkpoint: it starts again
             (self.out / "log.jsonl").unlink(missing_ok=True)
@@ -617,16 +694,27 @@ class Trainer:
             remove_stale_temps(self.out)
             _write_text_atomic(self.out / "config.yaml", _yaml(cfg.to_dict()))
         self._open_logs()
-        self._write({"kind": "data", "step": self.step, "samples": len(self.data),
-                     "data_root": str(getattr(self.data, "root", "")), "world_size": self.world})
+        self._write(
+            {
+                "kind": "data",
+                "step": self.step,
+                "samples": len(self.data),
+                "data_root": str(getattr(self.data, "root", "")),
+                "world_size": self.world,
+            }
+        )
         t_start = time.perf_counter()
         samples = 0
         try:
             while self.epoch < cfg.epochs:
                 stats = self.train_epoch()
                 samples += int(round(stats["samples_per_s"] * stats["epoch_wall_s"]))
-                record: dict[str, Any] = {"kind": "epoch", "epoch": self.epoch, "step": self.step,
-                                          **stats}
+                record: dict[str, Any] = {
+                    "kind": "epoch",
+                    "epoch": self.epoch,
+                    "step": self.step,
+                    **stats,
+                }
                 if self.world > 1:
                     self.pg.barrier()
                 val = None
@@ -641,8 +729,11 @@ class Trainer:
                 self._write(record)
                 self._save("last.pt")
                 if self.main:
-                    msg = " ".join(f"{k}={v:.4g}" for k, v in record.items()
-                                   if isinstance(v, float) and k != "epoch_wall_s")
+                    msg = " ".join(
+                        f"{k}={v:.4g}"
+                        for k, v in record.items()
+                        if isinstance(v, float) and k != "epoch_wall_s"
+                    )
                     print(f"epoch {self.epoch}/{cfg.epochs} {msg}", flush=True)
                 if self.world > 1:
                     self.pg.barrier()
@@ -650,8 +741,13 @@ class Trainer:
             self._close_logs()
         wall = time.perf_counter() - t_start
         return TrainResult(
-            out=self.out, epochs_done=self.epoch, steps=self.step, best_epoch=self.best_epoch,
-            best_val=self.best_val, history=self.history, wall_s=wall,
+            out=self.out,
+            epochs_done=self.epoch,
+            steps=self.step,
+            best_epoch=self.best_epoch,
+            best_val=self.best_val,
+            history=self.history,
+            wall_s=wall,
             samples_per_s=samples / max(wall, 1e-9),
         )
 
@@ -683,12 +779,16 @@ def check_run_dir(out: str | Path, resume: bool) -> Path | None:
         if last.is_file():
             return last
         if not config.is_file():
-            raise TrainingError(f"nothing to resume in {out}: it holds no last.pt and no "
-                                "config.yaml (check --out, or drop --resume to start a run)")
+            raise TrainingError(
+                f"nothing to resume in {out}: it holds no last.pt and no "
+                "config.yaml (check --out, or drop --resume to start a run)"
+            )
     elif last.exists() or config.exists():
         held = last if last.exists() else config
-        raise TrainingError(f"{out} already holds a run ({held.name} exists): pass --resume to "
-                            "continue it, or choose another --out")
+        raise TrainingError(
+            f"{out} already holds a run ({held.name} exists): pass --resume to "
+            "continue it, or choose another --out"
+        )
     _check_writable(out)
     return None
 
@@ -701,8 +801,9 @@ def _check_writable(out: Path) -> None:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
-        raise TrainingError(f"cannot write to the run directory {out}: "
-                            f"{exc.strerror or exc}") from None
+        raise TrainingError(
+            f"cannot write to the run directory {out}: {exc.strerror or exc}"
+        ) from None
 
 
 def check_device(device: str) -> None:
@@ -710,12 +811,14 @@ def check_device(device: str) -> None:
     if not device.startswith("cuda"):
         return
     if not torch.cuda.is_available():
-        raise TrainingError(f"device {device!r}: CUDA is not available on this machine "
-                            "(use --device cpu)")
+        raise TrainingError(
+            f"device {device!r}: CUDA is not available on this machine (use --device cpu)"
+        )
     index = torch.device(device).index
     if index is not None and index >= torch.cuda.device_count():
-        raise TrainingError(f"device {device!r}: only {torch.cuda.device_count()} CUDA "
-                            "device(s) here")
+        raise TrainingError(
+            f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s) here"
+        )
 
 
 def train(

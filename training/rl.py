@@ -66,8 +66,15 @@ from torch import nn
 
 from trackers.base import OBS_SHAPES, Tracker
 
-__all__ = ["ACTION_MODES", "CRITICS", "TRAIN_PARTS", "ScaledAdam", "TrackerPolicy", "lr_scaled",
-           "resolve_tracker"]
+__all__ = [
+    "ACTION_MODES",
+    "CRITICS",
+    "TRAIN_PARTS",
+    "ScaledAdam",
+    "TrackerPolicy",
+    "lr_scaled",
+    "resolve_tracker",
+]
 
 TRAIN_PARTS = ("head", "fusion+head", "all")
 ACTION_MODES = ("best", "soft")
@@ -136,9 +143,11 @@ def resolve_tracker(tracker: Any) -> Tracker:
         tracker = trackers.load(tracker)
     if not isinstance(tracker, Tracker):
         name = getattr(tracker, "name", type(tracker).__name__)
-        raise TypeError(f"TrackerPolicy needs a learned tracker (P2B, BAT or GPT: a shipped "
-                        f"name such as 'p2b-kitti1-u', a checkpoint path or a Tracker); "
-                        f"{name!r} has no parameters to train")
+        raise TypeError(
+            f"TrackerPolicy needs a learned tracker (P2B, BAT or GPT: a shipped "
+            f"name such as 'p2b-kitti1-u', a checkpoint path or a Tracker); "
+            f"{name!r} has no parameters to train"
+        )
     return tracker
 
 
@@ -185,8 +194,13 @@ class TrackerPolicy(ActorCriticPolicy):
         _check_spaces(observation_space, action_space)
         model = copy.deepcopy(resolve_tracker(tracker)).eval()
         super().__init__(
-            observation_space, action_space, lr_schedule, net_arch=[], ortho_init=False,
-            log_std_init=log_std_init, features_extractor_class=_NoFeatures,
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch=[],
+            ortho_init=False,
+            log_std_init=log_std_init,
+            features_extractor_class=_NoFeatures,
             optimizer_class=lr_scaled(optimizer_class),
             optimizer_kwargs={"eps": 1e-5} if optimizer_kwargs is None else optimizer_kwargs,
         )
@@ -206,7 +220,8 @@ class TrackerPolicy(ActorCriticPolicy):
         if critic == "fused":
             d = int(model.fused_channels)
             self.value_head: nn.Module = nn.Sequential(
-                nn.Linear(2 * d, critic_width), nn.Tanh(), nn.Linear(critic_width, 1))
+                nn.Linear(2 * d, critic_width), nn.Tanh(), nn.Linear(critic_width, 1)
+            )
         else:
             self.value_head = _SearchCritic(critic_width)
         self._trainable = self._select_trainable()
@@ -218,9 +233,13 @@ class TrackerPolicy(ActorCriticPolicy):
         self._actor_frozen = False
         own = [*self.value_head.parameters(), self.log_std]
         self.optimizer = self.optimizer_class(
-            [{"params": own, "lr_scale": 1.0, "name": "value+log_std"},
-             {"params": self._trainable, "lr_scale": self.tracker_lr_scale, "name": "tracker"}],
-            lr=lr_schedule(1), **self.optimizer_kwargs)
+            [
+                {"params": own, "lr_scale": 1.0, "name": "value+log_std"},
+                {"params": self._trainable, "lr_scale": self.tracker_lr_scale, "name": "tracker"},
+            ],
+            lr=lr_schedule(1),
+            **self.optimizer_kwargs,
+        )
         self.tracker.eval()
 
     # ------------------------------------------------------------------ SB3 hooks
@@ -237,18 +256,22 @@ class TrackerPolicy(ActorCriticPolicy):
         return self
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        raise NotImplementedError("TrackerPolicy is not saved through SB3 (it would be pickled); "
-                                  "use training.finetune, which writes safetensors")
+        raise NotImplementedError(
+            "TrackerPolicy is not saved through SB3 (it would be pickled); "
+            "use training.finetune, which writes safetensors"
+        )
 
-    def forward(self, obs: Any, deterministic: bool = False
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, obs: Any, deterministic: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         mean, values = self.mean_and_value(obs)
         dist = self.action_dist.proba_distribution(mean, self.log_std)
         actions = dist.get_actions(deterministic=deterministic)
         return actions, values[:, None], dist.log_prob(actions)
 
-    def evaluate_actions(self, obs: Any, actions: torch.Tensor
-                         ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def evaluate_actions(
+        self, obs: Any, actions: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         mean, values = self.mean_and_value(obs)
         dist = self.action_dist.proba_distribution(mean, self.log_std)
         return values[:, None], dist.log_prob(actions), dist.entropy()
@@ -261,8 +284,9 @@ class TrackerPolicy(ActorCriticPolicy):
         return self.mean_and_value(obs)[1][:, None]
 
     # ------------------------------------------------------------------ the actor and critic
-    def mean_and_value(self, obs: Any, value: bool = True
-                       ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    def mean_and_value(
+        self, obs: Any, value: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Action mean ``(B, 4)`` in ``[-1, 1]`` units and value ``(B,)`` (None unless
         ``value``) from one tracker forward. Raises ``FloatingPointError`` on a non-finite
         mean or value (broken weights must stop a run, not be trained on)."""
@@ -276,8 +300,9 @@ class TrackerPolicy(ActorCriticPolicy):
             weights = torch.softmax(scores / self.temperature, dim=1)
             action = (weights[..., None] * proposals).sum(dim=1)
         # tracker.act's rules: no move for an empty template or search, clip to max_action
-        empty = ((batch["template"] == 0).flatten(1).all(1)
-                 | (batch["search"] == 0).flatten(1).all(1))
+        empty = (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(
+            1
+        )
         action = torch.where(empty[:, None], torch.zeros_like(action), action)
         a_max = self.max_action.to(action.dtype)
         mean = torch.maximum(torch.minimum(action, a_max), -a_max) / a_max
@@ -296,14 +321,19 @@ class TrackerPolicy(ActorCriticPolicy):
 
     # ------------------------------------------------------------------ parameter control
     def _select_trainable(self) -> list[nn.Parameter]:
-        parts = {"head": ("head",), "fusion+head": ("fusion", "head"),
-                 "all": tuple(name for name, _ in self.tracker.named_children())}
+        parts = {
+            "head": ("head",),
+            "fusion+head": ("fusion", "head"),
+            "all": tuple(name for name, _ in self.tracker.named_children()),
+        }
         params: list[nn.Parameter] = []
         for name in parts[self.train_parts]:
             module = getattr(self.tracker, name, None)
             if module is None:
-                raise ValueError(f"train_parts={self.train_parts!r}: tracker "
-                                 f"{self.tracker.name!r} has no {name!r} module")
+                raise ValueError(
+                    f"train_parts={self.train_parts!r}: tracker "
+                    f"{self.tracker.name!r} has no {name!r} module"
+                )
             params.extend(module.parameters())
         return params
 
@@ -346,11 +376,20 @@ def _check_choice(name: str, value: Any, valid: tuple[str, ...]) -> None:
 
 def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
     if not isinstance(observation_space, spaces.Dict) or any(
-            k not in observation_space.spaces or observation_space[k].shape != s
-            for k, s in OBS_SHAPES.items()):
-        raise ValueError(f"TrackerPolicy needs the tracking env's Dict observation space with "
-                         f"{ {k: s for k, s in OBS_SHAPES.items()} }, got {observation_space}")
-    if (not isinstance(action_space, spaces.Box) or action_space.shape != (4,)
-            or not np.allclose(action_space.low, -1.0) or not np.allclose(action_space.high, 1.0)):
-        raise ValueError(f"TrackerPolicy needs a Box(-1, 1, (4,)) action space: wrap the env in "
-                         f"gymnasium.wrappers.RescaleAction(env, -1.0, 1.0); got {action_space}")
+        k not in observation_space.spaces or observation_space[k].shape != s
+        for k, s in OBS_SHAPES.items()
+    ):
+        raise ValueError(
+            f"TrackerPolicy needs the tracking env's Dict observation space with "
+            f"{ {k: s for k, s in OBS_SHAPES.items()} }, got {observation_space}"
+        )
+    if (
+        not isinstance(action_space, spaces.Box)
+        or action_space.shape != (4,)
+        or not np.allclose(action_space.low, -1.0)
+        or not np.allclose(action_space.high, 1.0)
+    ):
+        raise ValueError(
+            f"TrackerPolicy needs a Box(-1, 1, (4,)) action space: wrap the env in "
+            f"gymnasium.wrappers.RescaleAction(env, -1.0, 1.0); got {action_space}"
+        )

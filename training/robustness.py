@@ -1,4 +1,5 @@
-"""The adverse-weather robustness benchmark of ``003_…`` (Zhao et al.): any tracker, clean and under
+"""The adverse-weather robustness benchmark of Zhao et al. (adverse-weather SOT): any tracker,
+clean and under
 fog / rain / snow at levels 1..5, with the paper's robustness metrics and analysis.
 
 :func:`run_weather_benchmark` evaluates a tracker with :func:`training.evaluate.evaluate` on the
@@ -172,8 +173,11 @@ def _binned(x: np.ndarray, y: np.ndarray, edges: Sequence[float]) -> dict[str, A
         sel = idx == i
         counts.append(int(sel.sum()))
         means.append(float(y[sel].mean()) if sel.any() else None)
-    return {"edges": [float(e) if math.isfinite(e) else None for e in edges_a],
-            "mean_delta_iou": means, "count": counts}
+    return {
+        "edges": [float(e) if math.isfinite(e) else None for e in edges_a],
+        "mean_delta_iou": means,
+        "count": counts,
+    }
 
 
 def _analysis(clean: dict, weather: dict) -> dict[str, Any]:
@@ -182,8 +186,11 @@ def _analysis(clean: dict, weather: dict) -> dict[str, Any]:
         return {}
     delta = np.array([weather[k]["iou"] - clean[k]["iou"] for k in keys])
     dist = np.array([clean[k]["distance"] for k in keys])
-    out: dict[str, Any] = {"distance": _binned(dist, delta, DISTANCE_EDGES_M),
-                           "mean_delta_iou": float(delta.mean()), "frames": len(keys)}
+    out: dict[str, Any] = {
+        "distance": _binned(dist, delta, DISTANCE_EDGES_M),
+        "mean_delta_iou": float(delta.mean()),
+        "frames": len(keys),
+    }
     for name, key in (("template", "template_hd"), ("target", "target_hd")):
         hd = np.array([weather[k].get(key, math.nan) for k in keys], dtype=np.float64)
         ok = np.isfinite(hd)
@@ -256,8 +263,9 @@ def run_weather_benchmark(
     kinds_t = weather_kinds(kinds)
     levels_t = tuple(check_level(v) for v in levels)
     check_fog_mode(fog_mode)
-    if num_envs is not None and (isinstance(num_envs, bool) or int(num_envs) != num_envs
-                                 or num_envs < 1):
+    if num_envs is not None and (
+        isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1
+    ):
         raise ValueError(f"num_envs must be None or an integer >= 1; got {num_envs!r}")
     name = _tracker_name(tracker, name)
     say = log or (lambda _msg: None)
@@ -275,8 +283,9 @@ def run_weather_benchmark(
         if num_envs is not None:
             target = gym.vector.SyncVectorEnv([lambda r=r: r for r in recorders])
         try:
-            report = evaluate(tracker, target, seed=seed, tracklets=tracklets, name=name,
-                              progress=progress)
+            report = evaluate(
+                tracker, target, seed=seed, tracklets=tracklets, name=name, progress=progress
+            )
         finally:
             target.close()
         return report, _real_records(recorders, tracklets, vector=num_envs is not None)
@@ -304,16 +313,19 @@ def run_weather_benchmark(
             result["weather"][kind][level] = report
             if analysis:
                 result["analysis"][kind][level] = _analysis(clean_records, records)
-            say(f"{describe(kind, level)}: success {report['mean']['success']:.2f} "
-                f"precision {report['mean']['precision']:.2f}")
+            say(
+                f"{describe(kind, level)}: success {report['mean']['success']:.2f} "
+                f"precision {report['mean']['precision']:.2f}"
+            )
         result["robustness"][kind] = _robustness(clean, result["weather"][kind], levels_t)
     if out_dir is not None:
         save_weather(result, out_dir)
     return result
 
 
-def _real_records(recorders: list, tracklets: Sequence[int] | None, vector: bool
-                  ) -> dict[tuple[str, int], dict[str, float]]:
+def _real_records(
+    recorders: list, tracklets: Sequence[int] | None, vector: bool
+) -> dict[tuple[str, int], dict[str, float]]:
     """The per-frame records of the episodes :func:`training.evaluate.evaluate` counted: all of
     a single env's; of a vector env, the first ``len(order_i)`` episodes of sub-env ``i`` (the
     same :func:`~training.evaluate.split_tracklets` assignment as ``evaluate``'s vector runner;
@@ -389,15 +401,22 @@ def format_weather_table(results: dict[str, Any] | Sequence[dict[str, Any]]) -> 
                 cells = [_sp(e["clean"])] + [_sp(x) for x in e["levels"]]
                 cells += [_sp(e["DR"]), _sp(e["R"]), _sp(e["Sd"])]
                 label = (g + ("*" if e.get("observed") is False else "")) if i == 0 else ""
-                lines.append(f"{label:<11}{r['tracker']:<{namew}} "
-                             + " ".join(f"{c:^{cw}}" for c in cells))
-    lines.append("Success/Precision in percent; DR = 1 - mean_j(S_j / S_clean) (Tables III-IV), "
-                 "R = max - min and S.d = sample std over the levels; * unseen category.")
+                lines.append(
+                    f"{label:<11}{r['tracker']:<{namew}} " + " ".join(f"{c:^{cw}}" for c in cells)
+                )
+    lines.append(
+        "Success/Precision in percent; DR = 1 - mean_j(S_j / S_clean) (Tables III-IV), "
+        "R = max - min and S.d = sample std over the levels; * unseen category."
+    )
     return "\n".join(lines)
 
 
-def plot_success_vs_level(results: dict[str, Any] | Sequence[dict[str, Any]], path: str | Path,
-                          metric: str = "success", groups: Sequence[str] | None = None) -> Path:
+def plot_success_vs_level(
+    results: dict[str, Any] | Sequence[dict[str, Any]],
+    path: str | Path,
+    metric: str = "success",
+    groups: Sequence[str] | None = None,
+) -> Path:
     """One panel per weather kind: Success (or Precision) against level (0 = clean), one line per
     category and the mean, per tracker; ``groups`` restricts the lines (e.g. ``["mean",
     "unseen"]``; default: every category and the mean)."""
@@ -434,8 +453,11 @@ def plot_analysis(result: dict[str, Any], path: str | Path) -> Path:
     plt = pyplot()
 
     kinds = result["kinds"]
-    rows = (("distance", "target distance (m)"), ("template", "template Hausdorff (m)"),
-            ("target", "target Hausdorff (m)"))
+    rows = (
+        ("distance", "target distance (m)"),
+        ("template", "template Hausdorff (m)"),
+        ("target", "target Hausdorff (m)"),
+    )
     fig, axes = plt.subplots(3, len(kinds), figsize=(4.2 * len(kinds), 9), squeeze=False)
     for j, kind in enumerate(kinds):
         for i, (key, xlabel) in enumerate(rows):
@@ -445,8 +467,12 @@ def plot_analysis(result: dict[str, Any], path: str | Path) -> Path:
                 if not b:
                     continue
                 edges = [e if e is not None else math.inf for e in b["edges"]]
-                labels = [f"{edges[n]:g}-{edges[n + 1]:g}" if math.isfinite(edges[n + 1])
-                          else f">{edges[n]:g}" for n in range(len(edges) - 1)]
+                labels = [
+                    f"{edges[n]:g}-{edges[n + 1]:g}"
+                    if math.isfinite(edges[n + 1])
+                    else f">{edges[n]:g}"
+                    for n in range(len(edges) - 1)
+                ]
                 ys = [np.nan if v is None else v for v in b["mean_delta_iou"]]
                 ax.plot(range(len(labels)), ys, "-o", ms=3, label=f"L{level}")
                 ax.set_xticks(range(len(labels)), labels, rotation=45, fontsize=7)
@@ -489,16 +515,28 @@ def add_weather_arguments(parser) -> None:
         help="run the adverse-weather benchmark: 'all' or a comma list of fog, rain, snow "
         "(clean + every level; Tables III-IV metrics DR, R, S.d)",
     )
-    parser.add_argument("--weather-levels", default="1,2,3,4,5", metavar="LEVELS",
-                        help="comma list of weather levels 1..5 (default all five)")
-    parser.add_argument("--weather-seed", type=int, default=0,
-                        help="seed of the weather corruption (default 0)")
-    parser.add_argument("--no-analysis", action="store_true",
-                        help="skip the Sec. IV-A analysis (IoU change vs distance / Hausdorff)")
-    parser.add_argument("--fog-mode", default="reference", choices=("reference", "lossy"),
-                        help="fog rule: reference (the released fog simulation code: fog "
-                        "returns relocate points, none removed; default) or lossy (shifted "
-                        "tables, weak returns removed); docs/weather.md")
+    parser.add_argument(
+        "--weather-levels",
+        default="1,2,3,4,5",
+        metavar="LEVELS",
+        help="comma list of weather levels 1..5 (default all five)",
+    )
+    parser.add_argument(
+        "--weather-seed", type=int, default=0, help="seed of the weather corruption (default 0)"
+    )
+    parser.add_argument(
+        "--no-analysis",
+        action="store_true",
+        help="skip the Sec. IV-A analysis (IoU change vs distance / Hausdorff)",
+    )
+    parser.add_argument(
+        "--fog-mode",
+        default="reference",
+        choices=("reference", "lossy"),
+        help="fog rule: reference (the released fog simulation code: fog "
+        "returns relocate points, none removed; default) or lossy (shifted "
+        "tables, weak returns removed); docs/weather.md",
+    )
 
 
 def run_weather_eval(
@@ -523,9 +561,20 @@ def run_weather_eval(
     if isinstance(levels, str):
         levels = [int(v) for v in levels.split(",") if v.strip()]
     result = run_weather_benchmark(
-        tracker, make_env, weather, levels, seed=seed, weather_seed=weather_seed, name=name,
-        analysis=analysis, progress=progress, out_dir=out_dir, tracklets=tracklets,
-        log=print_fn, num_envs=num_envs, fog_mode=fog_mode,
+        tracker,
+        make_env,
+        weather,
+        levels,
+        seed=seed,
+        weather_seed=weather_seed,
+        name=name,
+        analysis=analysis,
+        progress=progress,
+        out_dir=out_dir,
+        tracklets=tracklets,
+        log=print_fn,
+        num_envs=num_envs,
+        fog_mode=fog_mode,
     )
     print_fn(format_weather_table(result))
     if out_dir is not None:

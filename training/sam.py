@@ -1,4 +1,5 @@
-"""Sharpness-Aware Minimization (Foret et al., ICLR 2021): the "-S" comparison of ``000_…``.
+"""Sharpness-Aware Minimization (Foret et al., ICLR 2021): the "-S" comparison of Tian et al. (TIP
+2024).
 
 SAM minimises ``max_{||e|| <= rho} L(w + e)``. With the first-order solution
 ``e(w) = rho * g / ||g||`` (``g = grad L(w)``, ``||.||`` the L2 norm over all parameters) one

@@ -16,7 +16,8 @@ One sample is ``(tracklet, frame t >= 1, candidate c)``:
   frame it reads is stretched by ``s`` along that frame's ground-truth box axes about the box
   centre (so the object and its surroundings grow or shrink together and it stays on the
   ground), the boxes' ``l, w, h`` multiplied by ``s``. Class-agnostic training sees only the
-  observed categories' sizes; ``000_…`` Sec. V suggests generating more diverse samples, and
+  observed categories' sizes; Tian et al. (TIP 2024) Sec. V suggests generating more diverse
+  samples, and
   resizing makes the network read the target's extent from the template instead of from a
   category prior (measured without it: cars seen from behind are voted 0.4-0.55 m beyond
   their centre, as if they were vans; see the README).
@@ -24,7 +25,7 @@ One sample is ``(tracklet, frame t >= 1, candidate c)``:
   latter's box frame (what the env reports as the last motion for a perfect tracker), zeros at
   ``t = 1`` (the env's first step).
 
-Targets (the INTERFACES.md ``targets`` contract): ``search_box (7,)`` the ground truth in the
+Targets (the ``targets`` contract of docs/design.md): ``search_box (7,)`` the ground truth in the
 reference frame; ``search_labels (1024,)`` 1 for search points inside the exact ground-truth box;
 ``template_centers (512, 3)`` the true target centre in each template point's own box frame (the
 origin for the first half, the previous ground truth's centre in the jittered frame for the
@@ -102,14 +103,21 @@ def stretch_about_box(
     return box_to_world(local, box)
 
 
-def _crop_stretched(points: np.ndarray, gt: np.ndarray, crop_box: np.ndarray, scale: float,
-                    offset_m: float, stretch: np.ndarray | None) -> np.ndarray:
+def _crop_stretched(
+    points: np.ndarray,
+    gt: np.ndarray,
+    crop_box: np.ndarray,
+    scale: float,
+    offset_m: float,
+    stretch: np.ndarray | None,
+) -> np.ndarray:
     """``crop_near`` of ``crop_box`` after stretching the scene about the frame's GT box (none
     when ``stretch`` is None); only the points the crop can reach are stretched."""
     if stretch is not None:
         shift_m = float(np.hypot(*(crop_box[:2] - gt[:2])))
-        points = stretch_about_box(points, gt, stretch,
-                                   _reach_m(crop_box, scale, offset_m) + shift_m)
+        points = stretch_about_box(
+            points, gt, stretch, _reach_m(crop_box, scale, offset_m) + shift_m
+        )
     return crop_near(points, crop_box, scale, offset_m)
 
 
@@ -168,8 +176,9 @@ class TrackingSamples(Dataset):
             raise ValueError(f"min_crop_points must be >= 0, got {min_crop_points}")
         scale, offset_m = (float(v) for v in search_enlargement)
         if not (scale > 0 and offset_m >= 0):
-            raise ValueError(f"search_enlargement must be (scale > 0, offset_m >= 0), got "
-                             f"{search_enlargement}")
+            raise ValueError(
+                f"search_enlargement must be (scale > 0, offset_m >= 0), got {search_enlargement}"
+            )
         self.size_jitter = float(size_jitter)
         self.candidates = candidates_per_frame
         self.seed = int(seed)
@@ -221,7 +230,8 @@ class TrackingSamples(Dataset):
             source = int(rng.integers(len(self)))
         raise ValueError(
             f"{self.describe(int(index))}: no sample with >= {self.min_crop_points} template and "
-            f"search points in {self.MAX_REDRAWS} redraws (lower min_crop_points)")
+            f"search points in {self.MAX_REDRAWS} redraws (lower min_crop_points)"
+        )
 
     def _search_offset(self, gt: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The Gaussian search offset ``(dx, dy)`` in the LiDAR frame, m (see ``limit_box``)."""
@@ -236,8 +246,9 @@ class TrackingSamples(Dataset):
         c, s = math.cos(gt[6]), math.sin(gt[6])
         return np.array([c * d[0] - s * d[1], s * d[0] + c * d[1]])
 
-    def _build(self, index: int, rng: np.random.Generator
-               ) -> tuple[dict[str, torch.Tensor], int, int]:
+    def _build(
+        self, index: int, rng: np.random.Generator
+    ) -> tuple[dict[str, torch.Tensor], int, int]:
         """Sample ``index`` drawn with ``rng``, its template points (both crops) and its search
         points (before resampling)."""
         k, t, cand = self.locate(index)
@@ -266,10 +277,10 @@ class TrackingSamples(Dataset):
         prev[6] = (prev[6] + math.pi) % (2 * math.pi) - math.pi
 
         first_crop = _crop_stretched(tr.points(0), box0, box0, TEMPLATE_SCALE, 0.0, stretch)
-        prev_crop = _crop_stretched(tr.points(t_prev), prev_gt, prev, TEMPLATE_SCALE, 0.0,
-                                    stretch)
-        search_crop = _crop_stretched(tr.points(t), gt, ref, self.search_scale,
-                                      self.search_offset_m, stretch)
+        prev_crop = _crop_stretched(tr.points(t_prev), prev_gt, prev, TEMPLATE_SCALE, 0.0, stretch)
+        search_crop = _crop_stretched(
+            tr.points(t), gt, ref, self.search_scale, self.search_offset_m, stretch
+        )
         own0 = np.array([0, 0, 0, *box0[3:6], 0.0])
         prev_in_own = boxes_in_frame(prev_gt, prev)
         search_box = boxes_in_frame(gt, ref)
@@ -277,13 +288,13 @@ class TrackingSamples(Dataset):
         search = np.empty((self.search_size, 3), np.float32)
         if self.template_union:
             template_labels, centers, m_s = self._union_template(
-                first_crop, prev_crop, own0, prev_in_own, search_crop, template, search, rng)
+                first_crop, prev_crop, own0, prev_in_own, search_crop, template, search, rng
+            )
         else:
             # resampled as the env's observations are: one call, the template halves in place
             half = self.template_size // 2
             a, b = template[:half], template[half:]
-            m_a, m_b, m_s = resample_into([first_crop, prev_crop, search_crop], [a, b, search],
-                                          rng)
+            m_a, m_b, m_s = resample_into([first_crop, prev_crop, search_crop], [a, b, search], rng)
             labels_a = points_in_box(a, own0) & (m_a > 0)
             labels_b = points_in_box(b, prev_in_own) & (m_b > 0)
             template_labels = np.concatenate([labels_a, labels_b]).astype(np.float32)
@@ -306,10 +317,17 @@ class TrackingSamples(Dataset):
         }
         return sample, len(first_crop) + len(prev_crop), len(search_crop)
 
-    def _union_template(self, first_crop: np.ndarray, prev_crop: np.ndarray, own0: np.ndarray,
-                        prev_in_own: np.ndarray, search_crop: np.ndarray, template: np.ndarray,
-                        search: np.ndarray, rng: np.random.Generator
-                        ) -> tuple[np.ndarray, np.ndarray, int]:
+    def _union_template(
+        self,
+        first_crop: np.ndarray,
+        prev_crop: np.ndarray,
+        own0: np.ndarray,
+        prev_in_own: np.ndarray,
+        search_crop: np.ndarray,
+        template: np.ndarray,
+        search: np.ndarray,
+        rng: np.random.Generator,
+    ) -> tuple[np.ndarray, np.ndarray, int]:
         """Fill ``template`` from the union of the two template crops (first, then previous:
         the env's merge order) and ``search``; each union point carries its label and its
         crop's target centre through the resampling. Returns the template labels ``(T,)``,
@@ -332,8 +350,12 @@ BATCH_KEYS = ("template", "search", "size", "motion")
 TARGET_KEYS = ("search_box", "search_labels", "template_centers", "template_labels")
 
 
-def split_batch(sample: dict[str, torch.Tensor], device: str | torch.device = "cpu",
-                batch_keys: Sequence[str] = BATCH_KEYS, target_keys: Sequence[str] = TARGET_KEYS):
+def split_batch(
+    sample: dict[str, torch.Tensor],
+    device: str | torch.device = "cpu",
+    batch_keys: Sequence[str] = BATCH_KEYS,
+    target_keys: Sequence[str] = TARGET_KEYS,
+):
     """A collated sample dict -> ``(batch, targets, indices)`` on ``device`` (the keys of the
     sample recipe: these samples' by default)."""
     batch = {k: sample[k].to(device) for k in batch_keys}

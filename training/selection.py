@@ -211,9 +211,14 @@ def score_candidates(
         env = None
         for candidate in candidates:
             key = {
-                "candidate": candidate, "digest": digests[candidate], "part": str(part),
-                "setting": config.setting, "preset": config.preset, "sensor": config.sensor,
-                "eval_seed": config.eval_seed, "num_envs": config.num_envs,
+                "candidate": candidate,
+                "digest": digests[candidate],
+                "part": str(part),
+                "setting": config.setting,
+                "preset": config.preset,
+                "sensor": config.sensor,
+                "eval_seed": config.eval_seed,
+                "num_envs": config.num_envs,
             }
             if config.dataset != "synthetic":  # keys of earlier (synthetic) caches unchanged
                 key["dataset"] = config.dataset
@@ -225,32 +230,49 @@ def score_candidates(
                     from envs.nuscenes_env import make_nuscenes_env
 
                     env = make_nuscenes_env(
-                        preset=config.preset, sensor=config.sensor, seed=part.world_seed,
-                        split=SOT_SPLITS[part.split], setting=config.setting,
+                        preset=config.preset,
+                        sensor=config.sensor,
+                        seed=part.world_seed,
+                        split=SOT_SPLITS[part.split],
+                        setting=config.setting,
                         categories=observed,
                     )
                 if env is None:
                     env = make_synthetic_env(
-                        preset=config.preset, sensor=config.sensor, seed=part.world_seed,
-                        split=part.split, setting=config.setting, categories=observed,
+                        preset=config.preset,
+                        sensor=config.sensor,
+                        seed=part.world_seed,
+                        split=part.split,
+                        setting=config.setting,
+                        categories=observed,
                     )
                 report = evaluate(
-                    loaded[candidate], env, seed=config.eval_seed, name=candidate,
-                    progress=progress, num_envs=config.num_envs,
+                    loaded[candidate],
+                    env,
+                    seed=config.eval_seed,
+                    name=candidate,
+                    progress=progress,
+                    num_envs=config.num_envs,
                 )
-                report = {"selection_key": key, "observed": report["observed"],
-                          "per_tracklet": report["per_tracklet"]}
+                report = {
+                    "selection_key": key,
+                    "observed": report["observed"],
+                    "per_tracklet": report["per_tracklet"],
+                }
                 if path is not None:
                     save_report(report, path)
                 how = "scored"
             else:
                 how = "cached"
             entry = report["observed"]
-            per_part[candidate][str(part)] = {k: float(entry[k]) for k in
-                                              ("success", "precision", "frames")}
+            per_part[candidate][str(part)] = {
+                k: float(entry[k]) for k in ("success", "precision", "frames")
+            }
             if log is not None:
-                log(f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
-                    f"over {int(entry['frames'])} frames")
+                log(
+                    f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
+                    f"over {int(entry['frames'])} frames"
+                )
         if env is not None:
             env.close()
     rows = [

@@ -1,4 +1,4 @@
-"""Feature-decorrelation sample weighting (the "-W" trainer of ``000_…`` Sec. III-C).
+"""Feature-decorrelation sample weighting (the "-W" trainer of Tian et al. (TIP 2024) Sec. III-C).
 
 What the paper specifies (Algorithm 1, Eq. 2-7), and how it is done here:
 

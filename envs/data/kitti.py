@@ -747,8 +747,10 @@ class KittiTracking:
         box_convention: str = "lidar",
     ) -> None:
         if box_convention not in BOX_CONVENTIONS:
-            raise ValueError(f"box_convention must be one of {', '.join(BOX_CONVENTIONS)}; got "
-                             f"{box_convention!r}")
+            raise ValueError(
+                f"box_convention must be one of {', '.join(BOX_CONVENTIONS)}; got "
+                f"{box_convention!r}"
+            )
         self.box_convention = box_convention
         if missing_scans not in ("raise", "empty"):
             raise ValueError(f"missing_scans must be 'raise' or 'empty'; got {missing_scans!r}")
@@ -774,7 +776,9 @@ class KittiTracking:
                 )
             warnings.warn(
                 f"KITTI root {self.root}: split {split!r} without its scenes "
-                f"{', '.join(missing)} ({names} missing)", MissingSceneWarning, stacklevel=2,
+                f"{', '.join(missing)} ({names} missing)",
+                MissingSceneWarning,
+                stacklevel=2,
             )
         self.scenes: list[str] = scenes
         self.tracklets: list[Tracklet] = []
@@ -797,8 +801,11 @@ class KittiTracking:
         idx = idx[np.lexsort((table.frame[idx], table.track_id[idx]))]
         calib = read_calibration(self.root / "calib" / f"{scene}.txt")
         cam = table.values[idx][:, [10, 11, 12, 13, 14, 15, 16]]  # h w l x y z ry
-        convert = camera_to_open3dsot_boxes if self.box_convention == "open3dsot" else (
-            camera_to_lidar_boxes)
+        convert = (
+            camera_to_open3dsot_boxes
+            if self.box_convention == "open3dsot"
+            else (camera_to_lidar_boxes)
+        )
         boxes = convert(cam, calib)
         frames = table.frame[idx]
         tids = table.track_id[idx]

@@ -342,8 +342,10 @@ def _check_quaternions(q: np.ndarray, table: _Table, rows: np.ndarray) -> None:
     bad = ~(np.isfinite(norm) & (norm > 1e-9))
     if bad.any():
         token = table.records[int(rows[np.flatnonzero(bad)[0]])]["token"]
-        raise ValueError(f"nuScenes table {table.path}: record {token!r} has a zero or "
-                         "non-finite rotation quaternion")
+        raise ValueError(
+            f"nuScenes table {table.path}: record {token!r} has a zero or "
+            "non-finite rotation quaternion"
+        )
 
 
 class NuScenesTracking:
@@ -428,8 +430,10 @@ class NuScenesTracking:
             while token:
                 i = t["sample"].find(token, referrer)
                 if sample_scene[i] >= 0:
-                    raise ValueError(f"nuScenes: sample {token!r} is reached twice "
-                                     f"(scene {rec['name']!r}); the sample chain loops")
+                    raise ValueError(
+                        f"nuScenes: sample {token!r} is reached twice "
+                        f"(scene {rec['name']!r}); the sample chain loops"
+                    )
                 sample_frame[i], sample_scene[i] = len(chain), k
                 chain.append(i)
                 referrer = f"sample {token!r} (next)"
@@ -459,15 +463,17 @@ class NuScenesTracking:
         )
         if (ann_sample < 0).any():
             k = int(np.flatnonzero(ann_sample < 0)[0])
-            t["sample"].find(anns.records[k]["sample_token"], f"sample_annotation "
-                             f"{anns.records[k]['token']!r}")
+            t["sample"].find(
+                anns.records[k]["sample_token"], f"sample_annotation {anns.records[k]['token']!r}"
+            )
         ann_inst = np.array(
             [t["instance"].index.get(s, -1) for s in anns.column("instance_token")], np.int64
         )
         if (ann_inst < 0).any():
             k = int(np.flatnonzero(ann_inst < 0)[0])
-            t["instance"].find(anns.records[k]["instance_token"], f"sample_annotation "
-                               f"{anns.records[k]['token']!r}")
+            t["instance"].find(
+                anns.records[k]["instance_token"], f"sample_annotation {anns.records[k]['token']!r}"
+            )
         keep = (sample_scene[ann_sample] >= 0) & cat_keep[inst_cat[ann_inst]]
         rows = np.flatnonzero(keep)
         if len(rows) == 0:
@@ -554,16 +560,20 @@ class NuScenesTracking:
         sd_rows = lidar_sd[samples]
         ego_rows = np.array(
             [
-                t["ego_pose"].find(sd.records[int(j)]["ego_pose_token"],
-                                   f"sample_data {sd.records[int(j)]['token']!r}")
+                t["ego_pose"].find(
+                    sd.records[int(j)]["ego_pose_token"],
+                    f"sample_data {sd.records[int(j)]['token']!r}",
+                )
                 for j in sd_rows
             ],
             np.int64,
         )
         cs_rows = np.array(
             [
-                t["calibrated_sensor"].find(sd.records[int(j)]["calibrated_sensor_token"],
-                                            f"sample_data {sd.records[int(j)]['token']!r}")
+                t["calibrated_sensor"].find(
+                    sd.records[int(j)]["calibrated_sensor_token"],
+                    f"sample_data {sd.records[int(j)]['token']!r}",
+                )
                 for j in sd_rows
             ],
             np.int64,

@@ -1,4 +1,4 @@
-"""Class-agnostic settings (Table I of ``000_…``) and class-specific mode.
+"""Class-agnostic settings (Table I of Tian et al. (TIP 2024)) and class-specific mode.
 
 A :class:`Setting` names the categories a tracker is trained on (``observed``) and the ones it
 meets only at test time (``unseen``). Presets: ``kitti-1``, ``kitti-2``, ``nuscenes-1``,

@@ -86,8 +86,12 @@ _BASE_TIMESTAMP_US = 1_533_151_603_547_590  # an ordinary nuScenes-era timestamp
 # tilted). Non-identity on purpose, so readers must apply it.
 LIDAR_CALIBRATION = {
     "translation": [0.943713, 0.0, 1.84023],
-    "rotation": [0.7077955119163518, -0.006492242056004365, 0.010646214713995808,
-                 -0.7063073142877817],
+    "rotation": [
+        0.7077955119163518,
+        -0.006492242056004365,
+        0.010646214713995808,
+        -0.7063073142877817,
+    ],
 }
 
 # Synthetic category -> (nuScenes category, attribute or None). nuScenes has no van class (vans
@@ -238,8 +242,11 @@ class _Tables:
             for i, lvl in enumerate(("v0-40", "v40-60", "v60-80", "v80-100"), 1)
         ]
         self.sensor = [
-            {"token": _token("sensor", LIDAR_CHANNEL), "channel": LIDAR_CHANNEL,
-             "modality": "lidar"}
+            {
+                "token": _token("sensor", LIDAR_CHANNEL),
+                "channel": LIDAR_CHANNEL,
+                "modality": "lidar",
+            }
         ]
         self.instance: list[dict] = []
         self.calibrated_sensor: list[dict] = []
@@ -253,9 +260,21 @@ class _Tables:
 
     def write(self, table_dir: Path) -> None:
         table_dir.mkdir(parents=True, exist_ok=True)
-        for name in ("category", "attribute", "visibility", "instance", "sensor",
-                     "calibrated_sensor", "ego_pose", "log", "scene", "sample", "sample_data",
-                     "sample_annotation", "map"):
+        for name in (
+            "category",
+            "attribute",
+            "visibility",
+            "instance",
+            "sensor",
+            "calibrated_sensor",
+            "ego_pose",
+            "log",
+            "scene",
+            "sample",
+            "sample_data",
+            "sample_annotation",
+            "map",
+        ):
             (table_dir / f"{name}.json").write_text(json.dumps(getattr(self, name), indent=0))
 
 
@@ -269,15 +288,33 @@ def _write_scene(
     attr_token = {a["name"]: a["token"] for a in tables.attribute}
     log_token, scene_token = _token(seed, sid, "log"), _token(seed, sid, "scene")
     cs_token = _token(seed, sid, "calibrated_sensor")
-    tables.log.append({"token": log_token, "logfile": f"synthetic-s{seed}-{sid:04d}",
-                       "vehicle": "synthetic", "date_captured": "2018-08-01",
-                       "location": "synthetic"})
+    tables.log.append(
+        {
+            "token": log_token,
+            "logfile": f"synthetic-s{seed}-{sid:04d}",
+            "vehicle": "synthetic",
+            "date_captured": "2018-08-01",
+            "location": "synthetic",
+        }
+    )
     map_token = _token(seed, sid, "map")
-    tables.map.append({"token": map_token, "log_tokens": [log_token],
-                       "category": "semantic_prior", "filename": f"maps/{map_token}.png"})
+    tables.map.append(
+        {
+            "token": map_token,
+            "log_tokens": [log_token],
+            "category": "semantic_prior",
+            "filename": f"maps/{map_token}.png",
+        }
+    )
     _tiny_png(root / "maps" / f"{map_token}.png")
-    tables.calibrated_sensor.append({"token": cs_token, "sensor_token": tables.sensor[0]["token"],
-                                     **LIDAR_CALIBRATION, "camera_intrinsic": []})
+    tables.calibrated_sensor.append(
+        {
+            "token": cs_token,
+            "sensor_token": tables.sensor[0]["token"],
+            **LIDAR_CALIBRATION,
+            "camera_intrinsic": [],
+        }
+    )
     # Global frame: the world rotated and shifted per scene.
     rng = np.random.default_rng([seed, sid, 29])
     r_gw = _rz(float(rng.uniform(-np.pi, np.pi)))
@@ -301,13 +338,29 @@ def _write_scene(
         r_ws = _rz(yaw)
         r_we = r_ws @ _R_SL @ r_el.T  # ego body in world: L = S Rz(-90), L in body = R_el
         t_we = origin - r_we @ t_el
-        tables.ego_pose.append({"token": sd_token, "timestamp": ts,
-                                "rotation": _matrix_to_quat(r_gw @ r_we),
-                                "translation": [float(v) for v in r_gw @ t_we + t_gw]})
+        tables.ego_pose.append(
+            {
+                "token": sd_token,
+                "timestamp": ts,
+                "rotation": _matrix_to_quat(r_gw @ r_we),
+                "translation": [float(v) for v in r_gw @ t_we + t_gw],
+            }
+        )
         samples.append({"token": sample_token, "timestamp": ts, "scene_token": scene_token})
-        sds.append({"token": sd_token, "sample_token": sample_token, "ego_pose_token": sd_token,
-                    "calibrated_sensor_token": cs_token, "timestamp": ts, "fileformat": "pcd",
-                    "is_key_frame": True, "height": 0, "width": 0, "filename": filename})
+        sds.append(
+            {
+                "token": sd_token,
+                "sample_token": sample_token,
+                "ego_pose_token": sd_token,
+                "calibrated_sensor_token": cs_token,
+                "timestamp": ts,
+                "fileformat": "pcd",
+                "is_key_frame": True,
+                "height": 0,
+                "width": 0,
+                "filename": filename,
+            }
+        )
         dist = np.hypot(frame.boxes[:, 0], frame.boxes[:, 1])
         sel = np.flatnonzero((dist <= LABEL_RANGE) & (frame.n_points >= MIN_LABEL_POINTS))
         world = agent_boxes_world(scene, t)
@@ -318,15 +371,20 @@ def _write_scene(
             centre = r_gw @ box[:3] + t_gw
             rot = r_gw @ _rz(float(box[6]))
             _, attr = NUSCENES_NAMES[agent.category]
-            by_agent.setdefault(a, []).append({
-                "token": _token(seed, sid, "ann", a, k), "sample_token": sample_token,
-                "instance_token": _token(seed, sid, "instance", a), "visibility_token": "",
-                "attribute_tokens": [] if attr is None else [attr_token[attr]],
-                "translation": [float(v) for v in centre],
-                "size": [float(box[4]), float(box[3]), float(box[5])],  # (w, l, h)
-                "rotation": _matrix_to_quat(rot),
-                "num_lidar_pts": int(frame.n_points[i]), "num_radar_pts": 0,
-            })
+            by_agent.setdefault(a, []).append(
+                {
+                    "token": _token(seed, sid, "ann", a, k),
+                    "sample_token": sample_token,
+                    "instance_token": _token(seed, sid, "instance", a),
+                    "visibility_token": "",
+                    "attribute_tokens": [] if attr is None else [attr_token[attr]],
+                    "translation": [float(v) for v in centre],
+                    "size": [float(box[4]), float(box[3]), float(box[5])],  # (w, l, h)
+                    "rotation": _matrix_to_quat(rot),
+                    "num_lidar_pts": int(frame.n_points[i]),
+                    "num_radar_pts": 0,
+                }
+            )
         bar.update(KEYFRAME_EVERY if t + KEYFRAME_EVERY <= scene.n_frames else scene.n_frames - t)
     _chain(samples)
     _chain(sds)
@@ -338,19 +396,34 @@ def _write_scene(
         _chain(anns)
         tables.sample_annotation.extend(anns)
         n_ann += len(anns)
-        tables.instance.append({
-            "token": anns[0]["instance_token"],
-            "category_token": cat_token[NUSCENES_NAMES[scene.agents[a].category][0]],
-            "nbr_annotations": len(anns), "first_annotation_token": anns[0]["token"],
-            "last_annotation_token": anns[-1]["token"],
-        })
-    tables.scene.append({"token": scene_token, "log_token": log_token,
-                         "nbr_samples": len(samples), "first_sample_token": samples[0]["token"],
-                         "last_sample_token": samples[-1]["token"], "name": name,
-                         "description": f"synthetic scene {sid} (seed {seed})"})
-    return {"name": name, "frames": scene.n_frames, "key_frames": len(samples),
-            "instances": len(by_agent), "annotations": n_ann,
-            "mean_points": round(n_points / max(len(samples), 1), 1)}
+        tables.instance.append(
+            {
+                "token": anns[0]["instance_token"],
+                "category_token": cat_token[NUSCENES_NAMES[scene.agents[a].category][0]],
+                "nbr_annotations": len(anns),
+                "first_annotation_token": anns[0]["token"],
+                "last_annotation_token": anns[-1]["token"],
+            }
+        )
+    tables.scene.append(
+        {
+            "token": scene_token,
+            "log_token": log_token,
+            "nbr_samples": len(samples),
+            "first_sample_token": samples[0]["token"],
+            "last_sample_token": samples[-1]["token"],
+            "name": name,
+            "description": f"synthetic scene {sid} (seed {seed})",
+        }
+    )
+    return {
+        "name": name,
+        "frames": scene.n_frames,
+        "key_frames": len(samples),
+        "instances": len(by_agent),
+        "annotations": n_ann,
+        "mean_points": round(n_points / max(len(samples), 1), 1),
+    }
 
 
 def expected_lidar_boxes(scene: Scene, sensor: SensorModel, t: int) -> np.ndarray:
@@ -363,8 +436,12 @@ def expected_lidar_boxes(scene: Scene, sensor: SensorModel, t: int) -> np.ndarra
 def nuscenes_identity(preset: str, sensor: str, seed: int, version: str) -> dict:
     """The manifest fields that decide whether a nuScenes-layout world can be reused."""
     ident = world_identity(preset, sensor, seed)
-    ident["layout"] = {"name": "nuscenes", "version": version, "writer": _writer_digest(),
-                       "keyframe_every": KEYFRAME_EVERY}
+    ident["layout"] = {
+        "name": "nuscenes",
+        "version": version,
+        "writer": _writer_digest(),
+        "keyframe_every": KEYFRAME_EVERY,
+    }
     return ident
 
 
@@ -423,8 +500,9 @@ def generate_nuscenes_world(
         total = sum(_scene_frames(p, seed, s) for s in p.scenes)
         with _progress(total, f"synthetic nuScenes {p.name}/{sensor_model.name}", progress) as bar:
             for scene_id, scene in _generated_scenes(p, seed, sensor_model):
-                entries[f"{scene_id:04d}"] = _write_scene(tmp, tables, scene, sensor_model,
-                                                          seed, bar)
+                entries[f"{scene_id:04d}"] = _write_scene(
+                    tmp, tables, scene, sensor_model, seed, bar
+                )
         tables.write(tmp / version)
         manifest = dict(ident)
         manifest["scene_stats"] = entries
@@ -460,5 +538,6 @@ def ensure_nuscenes_world(
     out = base / "worlds" / f"nuscenes-{preset}-{sensor}-s{int(seed)}-{digest}"
     if _matches(out, ident):
         return out
-    return generate_nuscenes_world(out, preset, sensor, seed, version, progress=progress,
-                                   overwrite=True)
+    return generate_nuscenes_world(
+        out, preset, sensor, seed, version, progress=progress, overwrite=True
+    )

@@ -674,8 +674,10 @@ def verify_world(root: str | Path, *, digests: bool = True) -> list[str]:
         return [f"{root}: no readable {MANIFEST} (not a generated world, or an incomplete one)"]
     files = manifest.get("files")
     if not isinstance(files, dict):
-        return [f"{root / MANIFEST}: no file list (written by a generator older than the "
-                "integrity check); regenerate the world"]
+        return [
+            f"{root / MANIFEST}: no file list (written by a generator older than the "
+            "integrity check); regenerate the world"
+        ]
     problems = []
     for rel, entry in files.items():
         path = root / rel
@@ -732,7 +734,8 @@ def ensure_world(
         warnings.warn(
             f"cached world {out} is damaged ({problems[0]}"
             + (f" and {len(problems) - 1} more" if len(problems) > 1 else "")
-            + "); regenerating it", stacklevel=2,
+            + "); regenerating it",
+            stacklevel=2,
         )
     _check_cache_writable(base)
     return generate_world(out, preset, sensor, seed, labels_dir, progress=progress, overwrite=True)

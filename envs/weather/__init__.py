@@ -1,5 +1,6 @@
 """Adverse weather for LiDAR scans: fog, rain and snow at five levels each, applied to whole
-scans in the sensor frame, plus the domain-randomisation augmentation of ``003_…`` Algorithm 1.
+scans in the sensor frame, plus the domain-randomisation augmentation of Zhao et al.
+(adverse-weather SOT) Algorithm 1.
 
 Every corruption has the signature
 ``corruption(points (N, 3) float32, intensity (N,) float32, rng: numpy.random.Generator,

@@ -53,9 +53,7 @@ def full_scale(intensity: np.ndarray) -> float:
     return top
 
 
-def move_along_rays(
-    points: np.ndarray, ranges: np.ndarray, new_ranges: np.ndarray
-) -> np.ndarray:
+def move_along_rays(points: np.ndarray, ranges: np.ndarray, new_ranges: np.ndarray) -> np.ndarray:
     """Points moved along their rays from the sensor to ``new_ranges`` (float32)."""
     scale = np.divide(new_ranges, ranges, out=np.ones_like(ranges), where=ranges > 0)
     return (points * scale[:, None].astype(np.float32)).astype(np.float32, copy=False)

@@ -87,8 +87,15 @@ def _corrupt_with_source(kind, level, scan, rng):
     return precipitation_rate(scan[:, :3], scan[:, 3], rng, kind, p, return_source=True)
 
 
-def levels_figure(scan: np.ndarray, path: str | Path, boxes=(), scene: str = "0000",
-                  frame: int = 0, seed: int = 0, extent_m: float = 50.0) -> Path:
+def levels_figure(
+    scan: np.ndarray,
+    path: str | Path,
+    boxes=(),
+    scene: str = "0000",
+    frame: int = 0,
+    seed: int = 0,
+    extent_m: float = 50.0,
+) -> Path:
     """Draw ``scan`` clean and under each kind at levels 1, 3, 5 (bird's eye) into one PNG:
     surviving returns grey, returns moved toward the sensor (fog / particle scatter) red, lost
     returns (at their clean position) orange. The generator is the one
@@ -119,8 +126,9 @@ def levels_figure(scan: np.ndarray, path: str | Path, boxes=(), scene: str = "00
                 draw(ax, out[~moved], "0.35", 0.05)
                 draw(ax, scan[lost, :3], "tab:orange", 0.6)
                 draw(ax, out[moved], "red", 1.5)
-                title = (f"{describe(kind, level)}\nlost {lost.sum():,}, moved closer "
-                         f"{moved.sum():,}")
+                title = (
+                    f"{describe(kind, level)}\nlost {lost.sum():,}, moved closer {moved.sum():,}"
+                )
             for b in boxes:
                 c, s = math.cos(b[6]), math.sin(b[6])
                 hl, hw = b[3] / 2, b[4] / 2
@@ -134,9 +142,11 @@ def levels_figure(scan: np.ndarray, path: str | Path, boxes=(), scene: str = "00
             ax.set_xticks([])
             ax.set_yticks([])
             ax.set_title(title, fontsize=8)
-    fig.suptitle(f"one frame, bird's eye (±{extent_m:g} m): grey = returns kept, red = moved "
-                 "toward the sensor (fog / rain / snow scatter), orange = lost; blue = target box",
-                 fontsize=9)
+    fig.suptitle(
+        f"one frame, bird's eye (±{extent_m:g} m): grey = returns kept, red = moved "
+        "toward the sensor (fog / rain / snow scatter), orange = lost; blue = target box",
+        fontsize=9,
+    )
     fig.tight_layout()
     return save_figure(fig, path, 80)
 

@@ -1,7 +1,8 @@
 """The weather level tables: the one place where the five levels of each kind are defined.
 
 Levels are 1 (light) .. 5 (heavy), as in the KITTI-A / nuScenes-A benchmark of Zhao et al.
-(``003_…``, Sec. III-B), which simulates fog after Hahner et al. (ICCV 2021) and rain and snow
+(Zhao et al., adverse-weather SOT, Sec. III-B), which simulates fog after Hahner et al. (ICCV 2021)
+and rain and snow
 with LISA (Kilic et al. 2021) at five settings each.
 
 - **fog**: attenuation (extinction) coefficient ``alpha`` in 1/m. The values are those of the

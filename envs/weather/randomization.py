@@ -1,4 +1,4 @@
-"""Domain randomisation of Algorithm 1 in ``003_…`` (Zhao et al., DRCT), as a point-set
+"""Domain randomisation of Algorithm 1 in Zhao et al. (adverse-weather SOT, DRCT), as a point-set
 augmentation for training.
 
 With probability ``p_skip = 0.5`` the set is returned unchanged; otherwise each of three steps is
@@ -42,8 +42,12 @@ def domain_randomize(
     pts = np.asarray(points, dtype=np.float32)
     if pts.ndim != 2 or pts.shape[1] < 3:
         raise ValueError(f"points must be (N, C>=3); got shape {pts.shape}")
-    for name, v in (("p_skip", p_skip), ("p_step", p_step), ("max_noise_ratio", max_noise_ratio),
-                    ("max_drop_ratio", max_drop_ratio)):
+    for name, v in (
+        ("p_skip", p_skip),
+        ("p_step", p_step),
+        ("max_noise_ratio", max_noise_ratio),
+        ("max_drop_ratio", max_drop_ratio),
+    ):
         if not 0.0 <= v <= 1.0:
             raise ValueError(f"{name} must be in [0, 1]; got {v}")
     if jitter_m < 0:

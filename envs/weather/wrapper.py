@@ -37,8 +37,9 @@ class WeatherTransform:
     the tracklets of a scene).
     """
 
-    def __init__(self, kind: str, level: int, seed: int = 0, cache_size: int = 4,
-                 fog_mode: str = "reference") -> None:
+    def __init__(
+        self, kind: str, level: int, seed: int = 0, cache_size: int = 4, fog_mode: str = "reference"
+    ) -> None:
         from envs.weather.fog import check_fog_mode
 
         self.kind = check_kind(kind)
@@ -80,8 +81,14 @@ class WeatherTransform:
             raise ValueError(
                 f"WeatherTransform needs (N, 4) scans (x, y, z, intensity); got shape {pts.shape}"
             )
-        xyz, inten = corrupt(self.kind, pts[:, :3], pts[:, 3], self.rng(scene, frame), self.level,
-                             fog_mode=self.fog_mode)
+        xyz, inten = corrupt(
+            self.kind,
+            pts[:, :3],
+            pts[:, 3],
+            self.rng(scene, frame),
+            self.level,
+            fog_mode=self.fog_mode,
+        )
         out = np.empty((len(xyz), pts.shape[1]), np.float32)
         out[:, :3] = xyz
         out[:, 3] = inten
@@ -95,8 +102,10 @@ class WeatherTransform:
         return out
 
     def __repr__(self) -> str:
-        return (f"WeatherTransform({self.kind!r}, {self.level}, seed={self.seed}, "
-                f"fog_mode={self.fog_mode!r})")
+        return (
+            f"WeatherTransform({self.kind!r}, {self.level}, seed={self.seed}, "
+            f"fog_mode={self.fog_mode!r})"
+        )
 
     def _key(self) -> tuple[str, int, int, str]:
         return (self.kind, self.level, self.seed, self.fog_mode)
@@ -122,8 +131,9 @@ class WeatherWrapper(gym.Wrapper):
     ``close()`` restores the previous transform. Observation and action spaces are unchanged.
     """
 
-    def __init__(self, env: gym.Env, kind: str, level: int, seed: int = 0,
-                 fog_mode: str = "reference") -> None:
+    def __init__(
+        self, env: gym.Env, kind: str, level: int, seed: int = 0, fog_mode: str = "reference"
+    ) -> None:
         super().__init__(env)
         base = env.unwrapped
         if not hasattr(base, "scan_transform"):

@@ -51,11 +51,13 @@ def main() -> None:
     for name in CHECKPOINTS:
         model = trackers.load(name)
         out[f"{name}/act_single"] = np.stack(
-            [model.act({k: v[i] for k, v in obs.items()}) for i in range(n)])
+            [model.act({k: v[i] for k, v in obs.items()}) for i in range(n)]
+        )
         out[f"{name}/act_batch"] = model.act(obs)
         with torch.no_grad():
-            fw = [model({k: torch.from_numpy(v[i:i + 1]) for k, v in obs.items()})
-                  for i in range(n)]
+            fw = [
+                model({k: torch.from_numpy(v[i : i + 1]) for k, v in obs.items()}) for i in range(n)
+            ]
         for key in ("proposals", "scores"):
             out[f"{name}/{key}"] = np.concatenate([f[key].numpy() for f in fw])
         # the fused features are large: their SHA-256 (bit-exact) instead of the values

@@ -25,14 +25,20 @@ CHECKPOINT_NAMES = tuple(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
-    parser.add_argument("--preset", default="small", help="synthetic preset (tiny, small, "
-                        "default)")
+    parser.add_argument("--preset", default="small", help="synthetic preset (tiny, small, default)")
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
     parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    parser.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
-                        help="which scenes are evaluated")
-    parser.add_argument("--setting", default="kitti-1",
-                        help="class-agnostic setting: observed and unseen categories")
+    parser.add_argument(
+        "--split",
+        default="test",
+        choices=("train", "val", "test", "all"),
+        help="which scenes are evaluated",
+    )
+    parser.add_argument(
+        "--setting",
+        default="kitti-1",
+        help="class-agnostic setting: observed and unseen categories",
+    )
     parser.add_argument(
         "--tracker",
         nargs="+",
@@ -51,8 +57,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=8,
         help="batch size for learned trackers (sub-envs of a SyncVectorEnv)",
     )
-    parser.add_argument("--max-tracklets", type=int, default=None, metavar="N",
-                        help="evaluate the first N tracklets only (N >= 1)")
+    parser.add_argument(
+        "--max-tracklets",
+        type=int,
+        default=None,
+        metavar="N",
+        help="evaluate the first N tracklets only (N >= 1)",
+    )
     parser.add_argument(
         "--max-frames",
         type=int,

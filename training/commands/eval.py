@@ -35,13 +35,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="run N sub-envs (SyncVectorEnv) so the tracker acts on batches",
     )
     parser.add_argument(
-        "--eval-seed", type=int, default=0,
+        "--eval-seed",
+        type=int,
+        default=0,
         help="seed of the point resampling (per tracklet: results do not depend on --num-envs)",
     )
-    parser.add_argument("--max-tracklets", type=int, default=None, metavar="N",
-                        help="evaluate the first N only (N >= 1)")
     parser.add_argument(
-        "--untrained", action="store_true",
+        "--max-tracklets",
+        type=int,
+        default=None,
+        metavar="N",
+        help="evaluate the first N only (N >= 1)",
+    )
+    parser.add_argument(
+        "--untrained",
+        action="store_true",
         help="allow a learned tracker's bare name (p2b, bat, gpt): a randomly initialised "
         "model seeded by --eval-seed (without this flag such a name is refused)",
     )
@@ -55,7 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     """The dataset / env flags shared by `eval` and `demo`."""
     parser.add_argument(
-        "--dataset", choices=("synthetic", "kitti", "nuscenes"), default="synthetic",
+        "--dataset",
+        choices=("synthetic", "kitti", "nuscenes"),
+        default="synthetic",
         help="a synthetic world (generated once into the cache), a KITTI root or a nuScenes root",
     )
     parser.add_argument(
@@ -75,10 +85,15 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="small", help="synthetic preset (tiny, small, default)")
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
     parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    parser.add_argument("--split", default="test", choices=("train", "val", "test", "all"),
-                        help="scenes: train 0-16, val 17-18, test 19-20 (KITTI's split)")
     parser.add_argument(
-        "--allow-missing-scenes", action="store_true",
+        "--split",
+        default="test",
+        choices=("train", "val", "test", "all"),
+        help="scenes: train 0-16, val 17-18, test 19-20 (KITTI's split)",
+    )
+    parser.add_argument(
+        "--allow-missing-scenes",
+        action="store_true",
         help="go on (with a warning listing them) when the root lacks label files of scenes "
         "the split names; without it that is an error",
     )
@@ -96,7 +111,9 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         help="which earlier frames give the template points",
     )
     parser.add_argument(
-        "--reference", default="prediction", choices=("prediction", "previous_gt", "current_gt"),
+        "--reference",
+        default="prediction",
+        choices=("prediction", "previous_gt", "current_gt"),
         help="the box the search area is cut around (prediction: the honest closed loop)",
     )
 
@@ -135,8 +152,7 @@ def build_env(args: argparse.Namespace, **overrides: Any):
     if args.dataset == "kitti" and not args.root:
         raise SystemExit("pointtrack eval: --dataset kitti needs --root DIR")
     if not args.root:
-        return make_synthetic_env(preset=args.preset, sensor=args.sensor, seed=args.seed,
-                                  **kwargs)
+        return make_synthetic_env(preset=args.preset, sensor=args.sensor, seed=args.seed, **kwargs)
     if not getattr(args, "allow_missing_scenes", False):
         return make_kitti_env(root=args.root, **kwargs)  # KITTI, or a generated world
     from envs.data import KittiTracking, get_setting
@@ -172,8 +188,11 @@ def run(args: argparse.Namespace) -> int:
     loaded = load_trackers(args)
     check_out(args)
     keys = observation_keys_for(list(loaded.values()))  # e.g. M2-Track's previous frame
-    env = (build_env(args, observation_keys=keys) if args.num_envs == 1
-           else build_vector_env(args, args.num_envs, observation_keys=keys))
+    env = (
+        build_env(args, observation_keys=keys)
+        if args.num_envs == 1
+        else build_vector_env(args, args.num_envs, observation_keys=keys)
+    )
     reports = {}
     for name, tracker in loaded.items():
         n = env.unwrapped.num_tracklets if args.num_envs == 1 else env.get_attr("num_tracklets")[0]
@@ -204,8 +223,10 @@ def check_args(args: argparse.Namespace) -> None:
     if args.num_envs < 1:
         raise SystemExit(f"pointtrack eval: --num-envs must be >= 1, got {args.num_envs}")
     if args.max_tracklets is not None and args.max_tracklets < 1:
-        raise SystemExit(f"pointtrack eval: --max-tracklets must be >= 1, got "
-                         f"{args.max_tracklets} (leave it out to evaluate every tracklet)")
+        raise SystemExit(
+            f"pointtrack eval: --max-tracklets must be >= 1, got "
+            f"{args.max_tracklets} (leave it out to evaluate every tracklet)"
+        )
 
 
 def check_out(args: argparse.Namespace) -> None:
@@ -221,8 +242,9 @@ def check_out(args: argparse.Namespace) -> None:
             probe.write_bytes(b"")
             probe.unlink()
         except OSError as exc:
-            raise SystemExit(f"pointtrack eval: cannot write to --out {out}: "
-                             f"{exc.strerror or exc}") from None
+            raise SystemExit(
+                f"pointtrack eval: cannot write to --out {out}: {exc.strerror or exc}"
+            ) from None
         from training.checkpoint import remove_stale_temps
 
         remove_stale_temps(out)  # a killed evaluation's half-written report
@@ -234,13 +256,16 @@ def load_trackers(args: argparse.Namespace) -> dict[str, Any]:
 
     if len(set(args.tracker)) != len(args.tracker):
         raise SystemExit(f"pointtrack eval: a tracker is listed twice: {args.tracker}")
-    return {name: load_tracker(name, untrained=args.untrained, seed=args.eval_seed)
-            for name in args.tracker}
+    return {
+        name: load_tracker(name, untrained=args.untrained, seed=args.eval_seed)
+        for name in args.tracker
+    }
 
 
 def _run_weather(args: argparse.Namespace) -> int:
     """``--weather KINDS``: the adverse-weather benchmark (``training.robustness``): each tracker
-    clean and under every kind and level, printed as Tables III-IV of ``003_…``; with ``--out``,
+    clean and under every kind and level, printed as Tables III-IV of Zhao et al. (adverse-weather
+    SOT); with ``--out``,
     JSON, table and plots per tracker under ``<out>/weather_<tracker>/``. ``--num-envs N > 1``
     runs every condition on N sub-envs (batched ``act``); ``--fog-mode`` picks the fog rule."""
     from pathlib import Path

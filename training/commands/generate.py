@@ -10,10 +10,13 @@ import time
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags (valid values come from the synthetic module's tables)."""
-    parser.add_argument("--out", help="output directory (created atomically); required unless "
-                        "--verify")
     parser.add_argument(
-        "--verify", metavar="DIR", default=None,
+        "--out", help="output directory (created atomically); required unless --verify"
+    )
+    parser.add_argument(
+        "--verify",
+        metavar="DIR",
+        default=None,
         help="check the world in DIR against its manifest (every file's size and SHA-256) "
         "and exit: 0 intact, 1 damaged (one line per problem)",
     )
@@ -24,11 +27,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(21 scenes split like KITTI)",
     )
     parser.add_argument(
-        "--sensor", default=None,
+        "--sensor",
+        default=None,
         help="hdl64 (KITTI-like, 64 beams) or hdl32 (nuScenes-like); default per layout",
     )
     parser.add_argument(
-        "--layout", choices=("kitti", "nuscenes"), default="kitti",
+        "--layout",
+        choices=("kitti", "nuscenes"),
+        default="kitti",
         help="kitti (label_02/, calib/, velodyne/) or nuscenes (VERSION/*.json, samples/LIDAR_TOP; "
         "2 Hz key frames, default sensor hdl32)",
     )
@@ -120,13 +126,20 @@ def _run_nuscenes(args: argparse.Namespace, start: float) -> int:
     from envs.synthetic.nuscenes_layout import DEFAULT_VERSION, generate_nuscenes_world
 
     if args.from_labels or args.scan_frames is not None or args.scenes:
-        print("pointtrack generate: --from-labels, --scan-frames and --scenes apply to "
-              "--layout kitti", file=sys.stderr)
+        print(
+            "pointtrack generate: --from-labels, --scan-frames and --scenes apply to "
+            "--layout kitti",
+            file=sys.stderr,
+        )
         return 2
     try:
         root = generate_nuscenes_world(
-            args.out, args.preset, args.sensor or "hdl32", args.seed,
-            args.version or DEFAULT_VERSION, progress=False if args.no_progress else True,
+            args.out,
+            args.preset,
+            args.sensor or "hdl32",
+            args.seed,
+            args.version or DEFAULT_VERSION,
+            progress=False if args.no_progress else True,
             overwrite=args.overwrite,
         )
     except (ValueError, FileExistsError) as exc:
@@ -136,6 +149,8 @@ def _run_nuscenes(args: argparse.Namespace, start: float) -> int:
     size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
     print(f"nuScenes-layout world written to {root} in {elapsed:.1f} s ({size / 1e6:.1f} MB)")
     if args.preview:
-        print("pointtrack generate: --preview draws KITTI-layout worlds only; skipped",
-              file=sys.stderr)
+        print(
+            "pointtrack generate: --preview draws KITTI-layout worlds only; skipped",
+            file=sys.stderr,
+        )
     return 0

@@ -18,30 +18,43 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from training.selection import DEFAULT_PARTS
 
     parser.add_argument(
-        "candidates", nargs="+", metavar="CANDIDATE",
+        "candidates",
+        nargs="+",
+        metavar="CANDIDATE",
         help="training checkpoints (RUN/best.pt, RUN/last.pt: their validated weights), tracker "
         "files or shipped checkpoint names",
     )
     parser.add_argument(
-        "--parts", nargs="+", default=[str(p) for p in DEFAULT_PARTS], metavar="WORLD:SPLIT",
+        "--parts",
+        nargs="+",
+        default=[str(p) for p in DEFAULT_PARTS],
+        metavar="WORLD:SPLIT",
         help="synthetic world splits pooled into one score (default: %(default)s)",
     )
-    parser.add_argument("--setting", default="kitti-1",
-                        help="its observed categories are scored (default: kitti-1)")
+    parser.add_argument(
+        "--setting", default="kitti-1", help="its observed categories are scored (default: kitti-1)"
+    )
     parser.add_argument("--preset", default="default", help="synthetic preset (default: default)")
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (default: hdl64)")
     parser.add_argument(
-        "--dataset", choices=("synthetic", "nuscenes"), default="synthetic",
+        "--dataset",
+        choices=("synthetic", "nuscenes"),
+        default="synthetic",
         help="the worlds in KITTI layout (synthetic) or written in nuScenes layout (nuscenes)",
     )
     parser.add_argument(
-        "--train-world", type=int, default=0, metavar="SEED",
+        "--train-world",
+        type=int,
+        default=0,
+        metavar="SEED",
         help="world seed the candidates were trained on: its train and test splits are refused",
     )
     parser.add_argument("--eval-seed", type=int, default=0, help="seed of the point resampling")
     parser.add_argument("--num-envs", type=int, default=8, help="sub-envs per evaluation")
     parser.add_argument(
-        "--out", default=None, metavar="DIR",
+        "--out",
+        default=None,
+        metavar="DIR",
         help="write DIR/selection.json; per-part reports are kept in DIR/parts for reruns",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -55,22 +68,32 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         config = SelectionConfig(
-            setting=args.setting, preset=args.preset, sensor=args.sensor,
-            parts=tuple(ValPart.parse(p) for p in args.parts), train_world_seed=args.train_world,
-            eval_seed=args.eval_seed, num_envs=args.num_envs, dataset=args.dataset,
+            setting=args.setting,
+            preset=args.preset,
+            sensor=args.sensor,
+            parts=tuple(ValPart.parse(p) for p in args.parts),
+            train_world_seed=args.train_world,
+            eval_seed=args.eval_seed,
+            num_envs=args.num_envs,
+            dataset=args.dataset,
         )
         out = Path(args.out) if args.out else None
         rows = score_candidates(
-            args.candidates, config, cache_dir=out / "parts" if out else None,
-            progress=not args.no_progress, log=print,
+            args.candidates,
+            config,
+            cache_dir=out / "parts" if out else None,
+            progress=not args.no_progress,
+            log=print,
         )
     except ValueError as exc:
         raise SystemExit(f"pointtrack select: {exc}") from exc
     print(format_ranking(rows))
     print(f"selected: {rows[0]['candidate']} (pooled observed Success {rows[0]['success']:.2f})")
     if out is not None:
-        summary = {"config": {**vars(config), "parts": [str(p) for p in config.parts]},
-                   "ranking": rows}
+        summary = {
+            "config": {**vars(config), "parts": [str(p) for p in config.parts]},
+            "ranking": rows,
+        }
         path = save_report(summary, out / "selection.json")
         print(f"wrote {path}")
     return 0
