@@ -2,8 +2,8 @@
 
 Box convention (docs/design.md): ``(x, y, z, l, w, h, yaw)`` with ``(x, y, z)`` the geometric
 centre, ``l`` along the heading, ``w`` across it, ``h`` up, ``yaw`` about +z counter-clockwise
-from +x, wrapped to ``[-pi, pi)``. The box-local (canonical) frame of a box is reached by translating by
-``-centre`` and rotating by ``-yaw``.
+from +x, wrapped to ``[-pi, pi)``. The box-local (canonical) frame of a box is reached by
+translating by ``-centre`` and rotating by ``-yaw``.
 
 All functions take numpy arrays and broadcast their leading dimensions. A few torch twins used by
 the trackers live at the end of the module (suffix ``_torch``).
