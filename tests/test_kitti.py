@@ -308,7 +308,7 @@ def test_loader_splits_and_categories(world):
     assert KittiTracking(root, "test", "Van").categories == ("Van",)
     with pytest.raises(ValueError, match="unknown split 'dev'.*train, val, test, all"):
         KittiTracking(root, "dev")
-    with pytest.raises(ValueError, match="unknown category.*Cars.*Car, Van"):
+    with pytest.raises(ValueError, match="unknown KITTI category.*Cars.*Car, Van"):
         KittiTracking(root, "all", ["Cars"])
 
 

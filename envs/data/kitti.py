@@ -30,7 +30,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from envs.data.tracklet import ScanCache, Tracklet
+from envs.data.tracklet import ScanCache, Tracklet, check_categories
 from envs.geometry import wrap_yaw
 
 __all__ = [
@@ -688,21 +688,6 @@ def _check_split(split: str) -> range | None:
     return SPLITS[split]
 
 
-def _check_categories(categories: str | Sequence[str] | None) -> tuple[str, ...] | None:
-    if categories is None:
-        return None
-    if isinstance(categories, str):
-        categories = (categories,)
-    out = tuple(categories)
-    unknown = [c for c in out if c not in CATEGORIES]
-    if unknown:
-        raise ValueError(
-            f"unknown categor{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
-            f"valid: {', '.join(CATEGORIES)}"
-        )
-    return out
-
-
 class KittiTracking:
     """Tracklets of the KITTI tracking layout (real or synthetic).
 
@@ -758,7 +743,7 @@ class KittiTracking:
         self.split = split
         self.missing_scans = missing_scans
         scene_range = _check_split(split)
-        self.categories = _check_categories(categories)
+        self.categories = check_categories(categories, CATEGORIES, "KITTI")
         label_dir = self.root / "label_02"
         if not label_dir.is_dir():
             raise FileNotFoundError(f"KITTI root {self.root}: no label_02 folder at {label_dir}")

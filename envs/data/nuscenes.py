@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from envs.data.kitti import NonFinitePointsWarning
-from envs.data.tracklet import ScanCache, Tracklet
+from envs.data.tracklet import ScanCache, Tracklet, check_categories
 from envs.geometry import wrap_yaw
 
 __all__ = [
@@ -322,21 +322,6 @@ class _Table:
             raise ValueError(f"nuScenes table {self.path}: a record lacks field {key!r}") from None
 
 
-def _check_categories(categories: str | Sequence[str] | None) -> tuple[str, ...] | None:
-    if categories is None:
-        return None
-    if isinstance(categories, str):
-        categories = (categories,)
-    out = tuple(categories)
-    unknown = [c for c in out if c not in NUSCENES_CATEGORIES]
-    if unknown:
-        raise ValueError(
-            f"unknown nuScenes categor{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
-            f"valid: {', '.join(NUSCENES_CATEGORIES)}"
-        )
-    return out
-
-
 def _check_quaternions(q: np.ndarray, table: _Table, rows: np.ndarray) -> None:
     norm = np.linalg.norm(q, axis=-1)
     bad = ~(np.isfinite(norm) & (norm > 1e-9))
@@ -390,7 +375,7 @@ class NuScenesTracking:
         self.root = Path(root)
         self.version = version
         self.split = split
-        self.categories = _check_categories(categories)
+        self.categories = check_categories(categories, NUSCENES_CATEGORIES, "nuScenes")
         wanted_scenes = split_scenes(split)
         table_dir = self.root / version
         if not table_dir.is_dir():

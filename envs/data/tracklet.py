@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -72,3 +72,22 @@ class Tracklet:
     def points_with_intensity(self, t: int) -> np.ndarray:
         """Whole scan of the tracklet's ``t``-th frame, ``(N, 4)`` float32 (x, y, z, intensity)."""
         return self.scans(int(self.frames[t]))
+
+
+def check_categories(
+    categories: str | Sequence[str] | None, valid: Sequence[str], dataset: str
+) -> tuple[str, ...] | None:
+    """A category filter (one name, several, or ``None`` for all) as a tuple, or a
+    ``ValueError`` naming the unknown ones and the ``valid`` names of ``dataset``."""
+    if categories is None:
+        return None
+    if isinstance(categories, str):
+        categories = (categories,)
+    out = tuple(categories)
+    unknown = [c for c in out if c not in valid]
+    if unknown:
+        raise ValueError(
+            f"unknown {dataset} categor{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
+            f"valid: {', '.join(valid)}"
+        )
+    return out

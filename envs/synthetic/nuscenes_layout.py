@@ -54,12 +54,12 @@ from envs.synthetic.sensor import SensorModel, get_sensor
 from envs.synthetic.world import (
     MANIFEST,
     MIN_LABEL_POINTS,
-    _clean_stale_temps,
     _generated_scenes,
     _matches,
     _progress,
     _remove_tree,
     _scene_frames,
+    clean_stale_temps,
     default_cache_dir,
     get_preset,
     world_identity,
@@ -491,7 +491,7 @@ def generate_nuscenes_world(
             )
         _remove_tree(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    _clean_stale_temps(out)
+    clean_stale_temps(out.parent, out.name)  # what killed writers of this world left
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
