@@ -389,7 +389,7 @@ def test_synthetic_round_trip_boxes_and_points(world):
         expected_lidar_boxes,
         scene_name,
     )
-    from envs.synthetic.world import _generated_scenes
+    from envs.synthetic.world import generated_scenes
 
     data = NuScenesTracking(world, "v1.0-mini", "all")
     manifest = json.loads((world / "manifest.json").read_text())
@@ -399,7 +399,7 @@ def test_synthetic_round_trip_boxes_and_points(world):
         a["token"]: a for a in json.loads((world / "v1.0-mini/sample_annotation.json").read_text())
     }
     sensor = get_sensor("hdl32")
-    scenes = {scene_name(sid): s for sid, s in _generated_scenes(get_preset("tiny"), 0, sensor)}
+    scenes = {scene_name(sid): s for sid, s in generated_scenes(get_preset("tiny"), 0, sensor)}
     assert set(data.scenes) == set(scenes)
     checked = 0
     for tr, tokens in zip(data.tracklets, data.annotation_tokens, strict=True):

@@ -213,13 +213,13 @@ def test_every_category_is_labelled_in_every_tiny_scene(seed):
         sensor_pose,
         world_to_sensor_boxes,
     )
-    from envs.synthetic.world import _scene_frames
+    from envs.synthetic.world import scene_frames
 
     preset = PRESETS["tiny"]
     sensor = get_sensor("hdl64")
     for scene_id in preset.scenes:
         cfg = SceneConfig(
-            n_frames=_scene_frames(preset, seed, scene_id),
+            n_frames=scene_frames(preset, seed, scene_id),
             density=preset.density,
             static_density=preset.static_density,
         )

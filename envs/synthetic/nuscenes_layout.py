@@ -54,14 +54,14 @@ from envs.synthetic.sensor import SensorModel, get_sensor
 from envs.synthetic.world import (
     MANIFEST,
     MIN_LABEL_POINTS,
-    _generated_scenes,
-    _matches,
-    _progress,
-    _remove_tree,
-    _scene_frames,
     clean_stale_temps,
     default_cache_dir,
+    generated_scenes,
     get_preset,
+    manifest_matches,
+    progress_bar,
+    remove_tree,
+    scene_frames,
     world_identity,
 )
 
@@ -481,7 +481,7 @@ def generate_nuscenes_world(
     seed = int(ident["seed"])
     out = Path(out_dir)
     if out.exists():
-        if _matches(out, ident):
+        if manifest_matches(out, ident):
             return out
         if any(out.iterdir()) and not overwrite:
             raise FileExistsError(
@@ -489,7 +489,7 @@ def generate_nuscenes_world(
                 f"sensor={sensor}, seed={seed}, version={version}); choose another --out or "
                 "overwrite"
             )
-        _remove_tree(out)
+        remove_tree(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     clean_stale_temps(out.parent, out.name)  # what killed writers of this world left
     tmp = out.parent / f".{out.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}"
@@ -497,9 +497,11 @@ def generate_nuscenes_world(
     try:
         tables = _Tables(seed)
         entries = {}
-        total = sum(_scene_frames(p, seed, s) for s in p.scenes)
-        with _progress(total, f"synthetic nuScenes {p.name}/{sensor_model.name}", progress) as bar:
-            for scene_id, scene in _generated_scenes(p, seed, sensor_model):
+        total = sum(scene_frames(p, seed, s) for s in p.scenes)
+        with progress_bar(
+            total, f"synthetic nuScenes {p.name}/{sensor_model.name}", progress
+        ) as bar:
+            for scene_id, scene in generated_scenes(p, seed, sensor_model):
                 entries[f"{scene_id:04d}"] = _write_scene(
                     tmp, tables, scene, sensor_model, seed, bar
                 )
@@ -511,12 +513,12 @@ def generate_nuscenes_world(
         try:
             os.rename(tmp, out)
         except OSError:
-            if _matches(out, ident):
-                _remove_tree(tmp)
+            if manifest_matches(out, ident):
+                remove_tree(tmp)
                 return out
             raise
     except BaseException:
-        _remove_tree(tmp)
+        remove_tree(tmp)
         raise
     return out
 
@@ -536,7 +538,7 @@ def ensure_nuscenes_world(
     digest = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:12]
     base = Path(cache_dir) if cache_dir is not None else default_cache_dir()
     out = base / "worlds" / f"nuscenes-{preset}-{sensor}-s{int(seed)}-{digest}"
-    if _matches(out, ident):
+    if manifest_matches(out, ident):
         return out
     return generate_nuscenes_world(
         out, preset, sensor, seed, version, progress=progress, overwrite=True

@@ -22,7 +22,7 @@ import numpy as np
 from envs.data.kitti import Calibration, camera_to_lidar_boxes, read_calibration, read_labels
 from envs.synthetic.objects import make_object
 from envs.synthetic.raycast import Parts
-from envs.synthetic.scene import Agent, Ground, Scene, _pole, _Static, _tree
+from envs.synthetic.scene import Agent, Ground, Scene, StaticObject, make_pole, make_tree
 from envs.synthetic.sensor import SensorModel
 
 __all__ = ["SHAPE_OF", "build_replay_scene", "replay_scene_ids"]
@@ -193,11 +193,11 @@ class _Occupancy:
         return not self.grid[i0:i1, j0:j1].any()
 
 
-def _street_around(boxes: np.ndarray, rng: np.random.Generator) -> _Static:
+def _street_around(boxes: np.ndarray, rng: np.random.Generator) -> StaticObject:
     """Buildings, trees and poles clear of every labelled footprint ``boxes (N, 7)`` (LiDAR
     frame, all frames of the scene): short building blocks at the nearest free distance on each
     side of the x axis, and trees and poles wherever no labelled object ever goes."""
-    st = _Static()
+    st = StaticObject()
     flat = Ground(
         0.0,
         0.0,
@@ -243,7 +243,7 @@ def _street_around(boxes: np.ndarray, rng: np.random.Generator) -> _Static:
         if rng.random() < 0.5:
             r = 2.6  # crown radius upper bound
             if occ.free(xt - r, xt + r, yt - r, yt + r):
-                _tree(st, flat, float(xt), float(yt), rng)
+                make_tree(st, flat, float(xt), float(yt), rng)
         elif occ.free(xt - 1.2, xt + 1.2, yt - 2.2, yt + 2.2):
-            _pole(st, flat, float(xt), float(yt), rng, 1.0 if yt > 0 else -1.0)
+            make_pole(st, flat, float(xt), float(yt), rng, 1.0 if yt > 0 else -1.0)
     return st

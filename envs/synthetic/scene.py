@@ -368,7 +368,7 @@ def _walk(
 # --------------------------------------------------------------------------- scene building
 
 
-class _Static:
+class StaticObject:
     """Accumulates static objects (world frame)."""
 
     def __init__(self) -> None:
@@ -402,7 +402,7 @@ def _single(kind: int, center, half, refl: float, rot=None) -> Parts:
     )
 
 
-def _tree(st: _Static, g: Ground, x: float, y: float, rng: np.random.Generator) -> None:
+def make_tree(st: StaticObject, g: Ground, x: float, y: float, rng: np.random.Generator) -> None:
     z = float(g.height(x, y))
     r_t = rng.uniform(0.1, 0.25)
     crown_r = rng.uniform(1.2, 2.6)
@@ -425,7 +425,9 @@ def _tree(st: _Static, g: Ground, x: float, y: float, rng: np.random.Generator) 
     st.composite(parts, [x, y, z + top / 2, 2 * crown_r, 2 * crown_r, top + 0.2, 0.0])
 
 
-def _pole(st: _Static, g: Ground, x: float, y: float, rng: np.random.Generator, side: float):
+def make_pole(
+    st: StaticObject, g: Ground, x: float, y: float, rng: np.random.Generator, side: float
+):
     z = float(g.height(x, y))
     if rng.random() < 0.5:  # street lamp with an arm over the road
         hgt = rng.uniform(6.0, 8.5)
@@ -510,7 +512,7 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
         )
 
     # ---- static world
-    st = _Static()
+    st = StaticObject()
     kerb_x: dict[float, list[float]] = {}  # x of trees and poles in each kerb zone
     for side, edge in ((-1.0, edge_r), (1.0, edge_l)):
         # Sidewalk slabs in segments (tighter culling windows), cut at the cross street.
@@ -583,10 +585,10 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
                 y = edge + side * 0.6
                 r = rng.random()
                 if has_trees and r < 0.6 * min(sdens, 1.5):
-                    _tree(st, ground, x, y, rng)
+                    make_tree(st, ground, x, y, rng)
                     kerb_x[side].append(x)
                 elif r < 0.6 * min(sdens, 1.5) + 0.25 * sdens:
-                    _pole(st, ground, x, y + side * 0.1, rng, side)
+                    make_pole(st, ground, x, y + side * 0.1, rng, side)
                     kerb_x[side].append(x)
             x += tree_gap * rng.uniform(0.8, 1.2)
 

@@ -242,7 +242,7 @@ def _read_manifest(root: Path) -> dict | None:
         return None
 
 
-def _matches(root: Path, ident: dict) -> bool:
+def manifest_matches(root: Path, ident: dict) -> bool:
     manifest = _read_manifest(root)
     if manifest is None:
         return False
@@ -368,7 +368,7 @@ def split_tracks(
 # --------------------------------------------------------------------------- generation
 
 
-def _progress(total: int, desc: str, progress: bool | None):
+def progress_bar(total: int, desc: str, progress: bool | None):
     from tqdm.auto import tqdm
 
     # progress=None: tqdm decides (shown on a terminal, silent in logs and tests).
@@ -381,16 +381,16 @@ def _progress(total: int, desc: str, progress: bool | None):
     )
 
 
-def _scene_frames(preset: Preset, seed: int, scene_id: int) -> int:
+def scene_frames(preset: Preset, seed: int, scene_id: int) -> int:
     lo, hi = preset.frames
     rng = np.random.default_rng([seed, scene_id, 3])
     return int(rng.integers(lo, hi + 1))
 
 
-def _generated_scenes(preset: Preset, seed: int, sensor: SensorModel) -> Iterator[tuple]:
+def generated_scenes(preset: Preset, seed: int, sensor: SensorModel) -> Iterator[tuple]:
     for scene_id in preset.scenes:
         cfg = SceneConfig(
-            n_frames=_scene_frames(preset, seed, scene_id),
+            n_frames=scene_frames(preset, seed, scene_id),
             density=preset.density,
             static_density=preset.static_density,
             required=CATEGORIES,
@@ -458,9 +458,9 @@ def _generate_into(
     if labels_dir is None:
         if scan_frames is not None or scenes is not None:
             raise ValueError("scan_frames and scenes apply to label-driven replay only")
-        total = sum(_scene_frames(preset, seed, s) for s in preset.scenes)
-        with _progress(total, f"synthetic {preset.name}/{sensor.name}", progress) as bar:
-            for scene_id, scene in _generated_scenes(preset, seed, sensor):
+        total = sum(scene_frames(preset, seed, s) for s in preset.scenes)
+        with progress_bar(total, f"synthetic {preset.name}/{sensor.name}", progress) as bar:
+            for scene_id, scene in generated_scenes(preset, seed, sensor):
                 entries[f"{scene_id:04d}"] = _write_scene(tmp, scene, sensor, seed, calib, bar)
     else:
         from envs.synthetic.replay import build_replay_scene, replay_scene_ids
@@ -475,7 +475,7 @@ def _generate_into(
             built.append((scene_id, scene, rows, scene_calib, rsensor))
             n = scene.n_frames if scan_frames is None else min(scene.n_frames, scan_frames)
             total += n
-        with _progress(total, f"replay {labels_dir.name}/{sensor.name}", progress) as bar:
+        with progress_bar(total, f"replay {labels_dir.name}/{sensor.name}", progress) as bar:
             for scene_id, scene, rows, scene_calib, rsensor in built:
                 entries[f"{scene_id:04d}"] = _write_scene(
                     tmp, scene, rsensor, seed, scene_calib, bar, rows, scan_frames
@@ -530,14 +530,14 @@ def generate_world(
     ident = world_identity(preset, sensor, seed, labels_path, scan_frames, scenes)
     out = Path(out_dir)
     if out.exists():
-        if _matches(out, ident) and not verify_world(out, digests=False):
+        if manifest_matches(out, ident) and not verify_world(out, digests=False):
             return out
-        if any(out.iterdir()) and not _matches(out, ident) and not overwrite:
+        if any(out.iterdir()) and not manifest_matches(out, ident) and not overwrite:
             raise FileExistsError(
                 f"{out} exists and is not this world (preset={preset}, sensor={sensor}, "
                 f"seed={seed}); choose another --out or overwrite"
             )
-        _remove_tree(out)  # another world (overwrite) or this one, damaged: regenerate
+        remove_tree(out)  # another world (overwrite) or this one, damaged: regenerate
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -554,15 +554,15 @@ def generate_world(
             os.rename(tmp, out)
         except OSError:
             # Someone else finished a world under this name first: keep it if it is this one.
-            if _matches(out, ident):
-                _remove_tree(tmp)
+            if manifest_matches(out, ident):
+                remove_tree(tmp)
                 return out
             raise FileExistsError(
                 f"{out} was written by another process meanwhile and is not this world "
                 f"(preset={preset}, sensor={sensor}, seed={seed}); choose another --out"
             ) from None
     except BaseException:
-        _remove_tree(tmp)
+        remove_tree(tmp)
         raise
     finally:
         _release_lock(tmp, lock)
@@ -630,7 +630,7 @@ def clean_stale_temps(directory: str | Path, name: str = "*") -> list[Path]:
         if _owner_alive(path):
             continue
         if path.is_dir():
-            _remove_tree(path)
+            remove_tree(path)
             _lock_path(path).unlink(missing_ok=True)
         else:  # a write probe of a killed process
             path.unlink(missing_ok=True)
@@ -693,7 +693,7 @@ def verify_world(root: str | Path, *, digests: bool = True) -> list[str]:
     return problems
 
 
-def _remove_tree(path: Path) -> None:
+def remove_tree(path: Path) -> None:
     if path.exists():
         # Rename first so a half-deleted tree never sits under a name someone may read.
         trash = path.parent / f".{path.name}.trash-{uuid.uuid4().hex[:8]}"
@@ -727,7 +727,7 @@ def ensure_world(
     tag = "" if labels_dir is None else "replay-"
     out = base / "worlds" / f"{tag}{preset}-{sensor}-s{int(seed)}-{digest}"
     clean_stale_temps(out.parent)
-    if _matches(out, ident):
+    if manifest_matches(out, ident):
         problems = verify_world(out, digests=False)
         if not problems:
             return out
