@@ -190,6 +190,8 @@ class Tracker(nn.Module):
     default_loss_weights: ClassVar[dict[str, float]] = {}
     #: config presets by model size: keyword overrides of the config defaults
     sizes: ClassVar[dict[str, dict[str, Any]]] = {"default": {}}
+    #: the batch's point clouds ``(B, N, 3)``, checked by :meth:`forward`; the first gives ``B``
+    point_keys: ClassVar[tuple[str, ...]] = ("template", "search")
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__()
@@ -237,14 +239,14 @@ class Tracker(nn.Module):
         self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
     ) -> dict[str, torch.Tensor]:
         """:meth:`forward_batch`, one sample at a time in eval mode (:attr:`batch_invariant`)."""
-        for key in ("template", "search"):
+        for key in self.point_keys:
             value = batch[key]
             if value.dim() != 3 or value.shape[-1] != 3:
                 raise ValueError(
                     f"batch[{key!r}] has shape {tuple(value.shape)}; expected "
-                    f"(B, {OBS_SHAPES[key][0]}, 3)"
+                    f"(B, {OBS_SHAPES.get(key, ('N',))[0]}, 3)"
                 )
-        b = batch["template"].shape[0]
+        b = batch[self.point_keys[0]].shape[0]
         if self.training or not self.batch_invariant or b <= 1:
             return self.forward_batch(batch, generator)
         parts = [

@@ -352,6 +352,7 @@ class M2Track(Tracker):
     sample_recipe: ClassVar[str] = "motion"
     #: the observation keys ``act`` reads beyond the default contract
     observation_keys: ClassVar[tuple[str, ...]] = ("previous_search",)
+    point_keys: ClassVar[tuple[str, ...]] = ("search", "previous_search")
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__(config, **overrides)
@@ -370,25 +371,6 @@ class M2Track(Tracker):
         self.prev_head = MLP([d, *cfg.head_channels, 4], last_activation=False)
         self.box_net = MiniPointNet(3 + bc, cfg.point_channels, cfg.hidden_channels)
         self.box_head = MLP([d, *cfg.head_channels, 4], last_activation=False)
-
-    def forward(
-        self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None
-    ) -> dict[str, torch.Tensor]:
-        """:meth:`forward_batch`, one sample at a time in eval mode (batch invariance)."""
-        for key in ("search", "previous_search"):
-            value = batch[key]
-            if value.dim() != 3 or value.shape[-1] != 3:
-                raise ValueError(
-                    f"batch[{key!r}] has shape {tuple(value.shape)}; expected (B, N, 3)"
-                )
-        b = batch["search"].shape[0]
-        if self.training or not self.batch_invariant or b <= 1:
-            return self.forward_batch(batch, generator)
-        parts = [
-            self.forward_batch({k: v[i : i + 1] for k, v in batch.items()}, generator)
-            for i in range(b)
-        ]
-        return {k: torch.cat([p[k] for p in parts]) for k in parts[0]}
 
     def forward_batch(
         self, batch: Mapping[str, torch.Tensor], generator: torch.Generator | None = None

@@ -43,6 +43,7 @@ __all__ = [
     "restore_rng_state",
     "rng_state",
     "tracker_from_checkpoint",
+    "unwritable_reason",
     "truncate_log",
 ]
 
@@ -242,3 +243,17 @@ def truncate_log(path: str | Path, step: int) -> int:
         tmp.write_text("".join(f"{line}\n" for line in kept))
         os.replace(tmp, path)
     return dropped
+
+
+def unwritable_reason(directory: str | Path) -> str | None:
+    """Why ``directory`` cannot be created or written (a probe file is written and removed), or
+    ``None`` when it can: callers turn the reason into their own one-line error."""
+    directory = Path(directory)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        probe = directory / f".write-test.tmp{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        return str(exc.strerror or exc)
+    return None

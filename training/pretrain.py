@@ -65,6 +65,7 @@ from training.checkpoint import (
     rng_state,
     tracker_from_checkpoint,
     truncate_log,
+    unwritable_reason,
 )
 from training.config import TrainConfig
 from training.losses import pooled_objective
@@ -789,21 +790,10 @@ def check_run_dir(out: str | Path, resume: bool) -> Path | None:
             f"{out} already holds a run ({held.name} exists): pass --resume to "
             "continue it, or choose another --out"
         )
-    _check_writable(out)
+    why = unwritable_reason(out)
+    if why is not None:
+        raise TrainingError(f"cannot write to the run directory {out}: {why}")
     return None
-
-
-def _check_writable(out: Path) -> None:
-    """Refuse an output directory that cannot be created or written (``TrainingError``)."""
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / f".write-test.tmp{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise TrainingError(
-            f"cannot write to the run directory {out}: {exc.strerror or exc}"
-        ) from None
 
 
 def check_device(device: str) -> None:

@@ -232,21 +232,14 @@ def check_args(args: argparse.Namespace) -> None:
 def check_out(args: argparse.Namespace) -> None:
     """Refuse an ``--out`` that cannot be created or written, before any evaluation."""
     if args.out:
-        import os
         from pathlib import Path
 
-        out = Path(args.out)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-            probe = out / f".write-test.tmp{os.getpid()}"
-            probe.write_bytes(b"")
-            probe.unlink()
-        except OSError as exc:
-            raise SystemExit(
-                f"pointtrack eval: cannot write to --out {out}: {exc.strerror or exc}"
-            ) from None
-        from training.checkpoint import remove_stale_temps
+        from training.checkpoint import remove_stale_temps, unwritable_reason
 
+        out = Path(args.out)
+        why = unwritable_reason(out)
+        if why is not None:
+            raise SystemExit(f"pointtrack eval: cannot write to --out {out}: {why}")
         remove_stale_temps(out)  # a killed evaluation's half-written report
 
 
