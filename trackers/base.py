@@ -279,6 +279,15 @@ class Tracker(nn.Module):
             )
         return outputs["Z"]
 
+    def eval_forward(self, batch: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """One eval-mode :meth:`forward` (the module's train / eval mode is restored after)."""
+        was_training = self.training
+        self.eval()
+        try:
+            return self.forward(batch)
+        finally:
+            self.train(was_training)
+
     @torch.no_grad()
     def act(self, obs: Any) -> np.ndarray:
         """Best proposal as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``
@@ -286,12 +295,7 @@ class Tracker(nn.Module):
         batch, single = prepare_observation(obs, self.device)
         if batch["template"].shape[0] == 0:
             return np.zeros((0, 4), dtype=np.float32)
-        was_training = self.training
-        self.eval()
-        try:
-            out = self.forward(batch)
-        finally:
-            self.train(was_training)
+        out = self.eval_forward(batch)
         best = out["scores"].argmax(dim=1)
         action = out["proposals"][torch.arange(len(best), device=best.device), best]
         empty = (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(

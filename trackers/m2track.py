@@ -517,12 +517,7 @@ class M2Track(Tracker):
         batch, single = prepare_motion_observation(obs, self.device)
         if batch["search"].shape[0] == 0:
             return np.zeros((0, 4), dtype=np.float32)
-        was_training = self.training
-        self.eval()
-        try:
-            out = self.forward(batch)
-        finally:
-            self.train(was_training)
+        out = self.eval_forward(batch)
         action = out["box"].clone()
         action[:, 3] = torch.remainder(action[:, 3] + math.pi, 2 * math.pi) - math.pi
         empty = (batch["search"] == 0).flatten(1).all(1) & (batch["previous_search"] == 0).flatten(
