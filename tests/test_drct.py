@@ -317,3 +317,26 @@ def test_drct_with_sam_and_the_rd_control_train(tmp_path):
         assert moved, name
         log = (tmp_path / name / "log.jsonl").read_text()
         assert "NaN" not in log
+
+
+def test_grad_clip_covers_the_auxiliary_branch(tmp_path):
+    """One norm over both branches: with a vanishing clip, Adam's first step moves neither the
+    primary tracker nor the auxiliary copy of it (unclipped, the copy would move by ~lr)."""
+    from training.pretrain import train
+
+    cfg = tiny_config(
+        tmp_path / "run",
+        epochs=1,
+        batch_size=2,
+        iters_per_epoch=1,
+        model_size="slim",
+        drct=True,
+        lr=1e-2,
+        grad_clip=1e-14,
+    )
+    train(cfg, train_data=small_dataset(), val_fn=False)
+    ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=True)
+    parameter_names = [name for name, _ in slim_p2b().named_parameters()]
+    for name in parameter_names:
+        primary, aux = ckpt["model"][name], ckpt["drct"][f"aux.{name}"]
+        torch.testing.assert_close(aux, primary, rtol=0, atol=1e-6, msg=name)

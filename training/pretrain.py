@@ -543,6 +543,13 @@ class Trainer:
             + f". The last good checkpoint ({self.out / 'last.pt'}) is left as it was."
         )
 
+    def _clip_gradients(self) -> None:
+        """Clip the gradient norm over every parameter the optimizer steps: the tracker's and,
+        with DRCT, its auxiliary branch's (one norm over both, as they train jointly)."""
+        if self.cfg.grad_clip:
+            params = [p for group in self.base_opt.param_groups for p in group["params"]]
+            torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+
     def _forward_losses(
         self, batch: dict[str, torch.Tensor], targets: dict[str, torch.Tensor]
     ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
@@ -593,12 +600,10 @@ class Trainer:
 
                 self.sam.first_step(zero_grad=True)
                 closure()
-                if cfg.grad_clip:
-                    torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                self._clip_gradients()
                 self.sam.second_step(zero_grad=True)
             else:
-                if cfg.grad_clip:
-                    torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+                self._clip_gradients()
                 self.base_opt.step()
             if self.ema is not None:
                 self.ema.update(self.model)
