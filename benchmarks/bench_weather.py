@@ -184,12 +184,14 @@ def bench_benchmark(
     import torch
 
     from envs.tracking_env import make_synthetic_env
-    from training.evaluate import load_tracker
+    from training.evaluate import env_options_for, load_tracker
     from training.robustness import run_weather_benchmark
 
     torch.set_num_threads(1)
-    base = make_synthetic_env(preset=preset, split="test", setting="kitti-1")
     tracker = load_tracker(tracker_name)
+    base = make_synthetic_env(
+        preset=preset, split="test", setting="kitti-1", **env_options_for([tracker])
+    )
     subset = None if max_tracklets is None else list(range(min(max_tracklets, base.num_tracklets)))
     total = sum(base.tracklet_lengths)
     print(

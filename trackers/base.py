@@ -34,6 +34,11 @@ Sampling: in training mode the backbone keeps a random prefix of each cloud (a p
 eval mode a :func:`trackers.ops.hash_order` keyed by ``config.sampling_seed`` - deterministic, and
 the outputs do not depend on the order of the input points.
 
+Eval env: ``tracker.env_options`` names the ``TrackingEnv`` options (template composition,
+search region) the tracker was trained with and must be evaluated with; ``{}`` means the env's
+defaults. ``trackers.save`` records them, ``trackers.load`` restores them, and the eval paths
+build their envs with them (``training.evaluate.env_options_for``).
+
 Eval paths: ``tracker.fast_eval`` (default ``True``) selects the exact speed-ups (folded
 BatchNorm, ragged groups, P2B's knot interpolation) over the plain path (the training
 computation with BatchNorm running statistics); both are the same function to float rounding.
@@ -218,6 +223,10 @@ class Tracker(nn.Module):
         #: especially on a GPU, but not batch-invariant). Training is always batched.
         self.batch_invariant = True
         self._fast_eval = True
+        #: the ``TrackingEnv`` options this tracker must be evaluated with (keys in
+        #: ``trackers.registry.ENV_OPTION_KEYS``; ``{}``: the env's defaults), set from the
+        #: training config and carried by ``trackers.save`` / ``trackers.load``
+        self.env_options: dict[str, Any] = {}
 
     @property
     def fast_eval(self) -> bool:

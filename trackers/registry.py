@@ -14,6 +14,11 @@ Checkpoint formats (never an arbitrary pickle):
 * ``.pt`` / ``.pth``: ``{"format", "version", "tracker", "config": <JSON str>, "state_dict"}``
   written by ``torch.save`` and read with ``torch.load(weights_only=True)``.
 
+Both formats carry an optional ``env_options`` entry (JSON): the ``TrackingEnv`` options the
+tracker must be evaluated with (``tracker.env_options``, keys in :data:`ENV_OPTION_KEYS`, e.g. a
+recipe-v2 tracker's ``template_mode``). It is written only when not empty; a file without it
+(every checkpoint written before it existed) loads with ``{}``: the env's defaults.
+
 Integrity: a shipped checkpoint (``trackers/checkpoints/``) loads only when its SHA-256 matches
 ``trackers/checkpoints/manifest.json`` (:func:`write_manifest` records it); no checkpoint loads with
 NaN or inf weights.
@@ -37,8 +42,13 @@ import torch
 
 __all__ = [
     "CHECKPOINT_DIR",
+    "ENV_OPTION_KEYS",
     "MANIFEST",
     "available",
+    "check_env_options",
+    "default_env_options",
+    "env_options_from_metadata",
+    "env_options_metadata",
     "find_checkpoint",
     "load",
     "load_file",
@@ -57,6 +67,9 @@ FORMAT = "pointtrack-tracker"
 VERSION = "1"
 _MANIFEST_FORMAT = "pointtrack-checkpoint-manifest"
 _KINDS = ("all", "learned", "baseline", "checkpoint")
+ENV_OPTION_KEYS = ("template_mode", "search_enlargement")
+"""The ``TrackingEnv`` options a tracker may record (``tracker.env_options``): those where
+training and evaluation must agree (the template composition, the search region)."""
 
 # name -> class; filled by @register (the built-ins when the trackers package is imported)
 _REGISTRY: dict[str, type] = {}
@@ -133,6 +146,70 @@ def size_config(name: str, size: str = "default") -> dict[str, Any]:
     return copy.deepcopy(cls.sizes[size])
 
 
+def check_env_options(options: Any, where: str) -> dict[str, Any]:
+    """Validate a tracker's ``env_options`` -> a normalised copy (``search_enlargement`` as a
+    ``(scale, offset_m)`` tuple of floats). ``ValueError`` naming ``where`` (e.g. the file), the
+    key and the bad value: an unknown key, a template mode the env lacks, a search enlargement
+    that is not two finite numbers with ``scale > 0`` and ``offset_m >= 0``."""
+    import math
+
+    from envs.tracking_env import TEMPLATE_MODES
+
+    if not isinstance(options, dict):
+        raise ValueError(f"{where}: env_options must be a JSON object, got {options!r}")
+    unknown = sorted(set(options) - set(ENV_OPTION_KEYS))
+    if unknown:
+        raise ValueError(
+            f"{where}: unknown env_options key(s) {unknown}; valid: {list(ENV_OPTION_KEYS)}"
+        )
+    out: dict[str, Any] = {}
+    if "template_mode" in options:
+        mode = options["template_mode"]
+        if mode not in TEMPLATE_MODES:
+            raise ValueError(
+                f"{where}: env_options template_mode {mode!r} is not one of {list(TEMPLATE_MODES)}"
+            )
+        out["template_mode"] = mode
+    if "search_enlargement" in options:
+        value = options["search_enlargement"]
+        ok = (
+            isinstance(value, list | tuple)
+            and len(value) == 2
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+            and all(math.isfinite(v) for v in value)
+        )
+        if not ok or not (value[0] > 0 and value[1] >= 0):
+            raise ValueError(
+                f"{where}: env_options search_enlargement {value!r} must be "
+                f"[scale > 0, offset_m >= 0] (finite numbers)"
+            )
+        out["search_enlargement"] = (float(value[0]), float(value[1]))
+    return out
+
+
+def default_env_options() -> dict[str, Any]:
+    """The ``TrackingEnv`` defaults of the :data:`ENV_OPTION_KEYS` (what ``{}`` stands for)."""
+    import inspect
+
+    from envs.tracking_env import TrackingEnv
+
+    params = inspect.signature(TrackingEnv).parameters
+    return {key: params[key].default for key in ENV_OPTION_KEYS}
+
+
+def env_options_metadata(tracker: Any) -> str | None:
+    """The checkpoint metadata (JSON) of ``tracker.env_options``, validated; ``None`` when
+    empty (env defaults: the file is written exactly as before the options existed)."""
+    options = check_env_options(
+        dict(getattr(tracker, "env_options", None) or {}), f"{tracker.name} tracker"
+    )
+    if not options:
+        return None
+    if "search_enlargement" in options:
+        options["search_enlargement"] = list(options["search_enlargement"])
+    return json.dumps(options, sort_keys=True)
+
+
 def make(name: str, **config: Any):
     """A fresh tracker: ``make("p2b", sampling_seed=1, head={"num_proposals": 32})``.
 
@@ -143,7 +220,8 @@ def make(name: str, **config: Any):
 
 
 def save(tracker: Any, path: str | Path) -> Path:
-    """Write ``tracker`` (a learned tracker) with its config to ``path`` (atomically)."""
+    """Write ``tracker`` (a learned tracker) with its config and its non-empty ``env_options``
+    to ``path`` (atomically)."""
     from trackers.base import Tracker
     from trackers.config import config_to_dict
 
@@ -157,6 +235,8 @@ def save(tracker: Any, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     config_json = json.dumps(config_to_dict(tracker.config), sort_keys=True)
+    options_json = env_options_metadata(tracker)
+    extra = {} if options_json is None else {"env_options": options_json}
     state = {k: v.detach().cpu().contiguous() for k, v in tracker.state_dict().items()}
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
@@ -168,6 +248,7 @@ def save(tracker: Any, path: str | Path) -> Path:
                     "tracker": tracker.name,
                     "config": config_json,
                     "state_dict": state,
+                    **extra,
                 },
                 tmp,
             )
@@ -182,6 +263,7 @@ def save(tracker: Any, path: str | Path) -> Path:
                     "version": VERSION,
                     "tracker": tracker.name,
                     "config": config_json,
+                    **extra,
                 },
             )
         tmp.replace(path)
@@ -202,7 +284,8 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
             ) from exc
         if not isinstance(blob, dict) or "state_dict" not in blob:
             raise ValueError(f"{path} is not a pointtrack tracker checkpoint (no state_dict)")
-        meta = {k: blob.get(k) for k in ("format", "version", "tracker", "config")}
+        keys = ("format", "version", "tracker", "config", "env_options")
+        meta = {k: blob[k] for k in keys if k in blob}
         return meta, blob["state_dict"]
     try:
         from safetensors import safe_open
@@ -306,7 +389,8 @@ def _migrate(config: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_file(path: str | Path, expect: str | None = None, map_location: Any = "cpu"):
-    """Load a checkpoint file -> tracker in eval mode on ``map_location``."""
+    """Load a checkpoint file -> tracker in eval mode on ``map_location``, its ``env_options``
+    restored (``{}`` when the file records none)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no tracker checkpoint at {path}")
@@ -327,6 +411,7 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
             f"trackers: {learned}"
         )
     _check_finite(path, state)
+    env_options = env_options_from_metadata(path, meta.get("env_options"))
     try:
         config = _migrate(json.loads(meta["config"]))
     except json.JSONDecodeError as exc:
@@ -341,7 +426,20 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
         raise ValueError(
             f"{path}: weights do not match a {name!r} with the stored config: {exc}"
         ) from exc
+    model.env_options = env_options
     return model.to(map_location).eval()
+
+
+def env_options_from_metadata(path: str | Path, raw: Any) -> dict[str, Any]:
+    """The validated ``env_options`` metadata ``raw`` (JSON) of the checkpoint at ``path``
+    (``{}`` when absent); ``ValueError`` naming the file, the key and the bad value."""
+    if raw is None:
+        return {}
+    try:
+        options = json.loads(raw) if isinstance(raw, str) else raw
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: env_options metadata is not valid JSON: {exc}") from exc
+    return check_env_options(options, f"{path}")
 
 
 def find_checkpoint(name_or_path: str | Path) -> Path | None:

@@ -209,13 +209,16 @@ def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
 
 def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
     """The tracker (CPU, eval mode) holding the validated weights of a training checkpoint
-    (:func:`load_weights`), ready for ``trackers.save`` or evaluation."""
+    (:func:`load_weights`), with the env options its run was validated with
+    (``tracker.env_options``, :func:`training.config.checkpoint_env_options`), ready for
+    ``trackers.save`` or evaluation."""
     import trackers
-    from training.config import checkpoint_tracker_kwargs
+    from training.config import checkpoint_env_options, checkpoint_tracker_kwargs
 
     weights, config = load_weights(path)
     model = trackers.make(config["tracker"], **checkpoint_tracker_kwargs(config))
     model.load_state_dict(weights)
+    model.env_options = checkpoint_env_options(config)
     return model.eval()
 
 

@@ -20,6 +20,7 @@ __all__ = [
     "RECIPES",
     "ConfigError",
     "TrainConfig",
+    "checkpoint_env_options",
     "checkpoint_tracker_kwargs",
     "config_from_dict",
     "load_config",
@@ -327,6 +328,18 @@ class TrainConfig:
         )
         return {"template_mode": mode, "search_enlargement": self.search_enlargement()}
 
+    def env_options(self) -> dict[str, Any]:
+        """The ``tracker.env_options`` a tracker trained with this config carries: all of
+        :meth:`env_kwargs` when any differs from the env's default, else ``{}`` (recipe v1:
+        nothing recorded, the tracker file is written exactly as before the options existed)."""
+        from trackers.registry import default_env_options
+
+        kwargs = self.env_kwargs()
+        defaults = default_env_options()
+        if all(_same_option(kwargs[k], defaults[k]) for k in kwargs):
+            return {}
+        return kwargs
+
     def make_kwargs(self) -> dict:
         """Keyword arguments of ``trackers.make(self.tracker, ...)`` (BAT's backbone samples by
         farthest-point sampling when ``bat_fps`` is on, unless ``tracker_config`` says)."""
@@ -338,13 +351,31 @@ class TrainConfig:
         return kwargs
 
 
+def _same_option(a: Any, b: Any) -> bool:
+    """Equal env option values (a tuple and a list of the same numbers are the same)."""
+    if isinstance(a, list | tuple) and isinstance(b, list | tuple):
+        return len(a) == len(b) and all(float(x) == float(y) for x, y in zip(a, b, strict=True))
+    return a == b
+
+
 def checkpoint_tracker_kwargs(config: dict[str, Any]) -> dict[str, Any]:
     """The ``trackers.make`` kwargs of the tracker a training checkpoint's ``config`` trained
     (keys it lacks at their :data:`LEGACY_DEFAULTS`, else the defaults; unknown keys ignored),
     recipe items included (BAT's FPS)."""
+    return _checkpoint_config(config).make_kwargs()
+
+
+def checkpoint_env_options(config: dict[str, Any]) -> dict[str, Any]:
+    """The ``tracker.env_options`` of the tracker a training checkpoint's ``config`` trained
+    (:meth:`TrainConfig.env_options`; keys it lacks read as in
+    :func:`checkpoint_tracker_kwargs`, so a checkpoint older than the recipes records none)."""
+    return _checkpoint_config(config).env_options()
+
+
+def _checkpoint_config(config: dict[str, Any]) -> TrainConfig:
     known = {f.name for f in dataclasses.fields(TrainConfig)}
     values = {k: v for k, v in {**LEGACY_DEFAULTS, **config}.items() if k in known}
-    return TrainConfig(**values).make_kwargs()
+    return TrainConfig(**values)
 
 
 # Keys that may change between a run and its resumption (they do not change the result).

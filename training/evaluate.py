@@ -35,6 +35,8 @@ from envs.plotting import pyplot, save_figure
 
 __all__ = [
     "UntrainedTrackerError",
+    "env_option_groups",
+    "env_options_for",
     "evaluate",
     "format_table",
     "json_safe",
@@ -98,6 +100,94 @@ def observation_keys_for(trackers: Sequence[Any]) -> tuple[str, ...]:
 
     wanted = {key for tracker in trackers for key in getattr(tracker, "observation_keys", ())}
     return (*OBSERVATION_KEYS, *(k for k in OPTIONAL_OBSERVATION_KEYS if k in wanted))
+
+
+def _recorded_options(tracker: Any) -> dict[str, Any]:
+    """A tracker's ``env_options`` (``{}`` for one without: a baseline, the env's defaults)."""
+    return dict(getattr(tracker, "env_options", None) or {})
+
+
+def env_options_for(trackers: Sequence[Any]) -> dict[str, Any]:
+    """The ``TrackingEnv`` keywords (``template_mode``, ``search_enlargement``) every tracker in
+    ``trackers`` must be evaluated with: their recorded ``tracker.env_options`` (``{}``, the
+    env's defaults, for a tracker that records none, e.g. a baseline or a recipe-v1 checkpoint).
+
+    Raises ``ValueError`` naming each tracker and its options when they differ: one env cannot
+    serve them all (:func:`env_option_groups` gives one option set per env)."""
+    groups = _group((tracker_name(t), _recorded_options(t)) for t in trackers)
+    if len(groups) > 1:
+        listed = "; ".join(f"{', '.join(n)}: {o or 'env defaults'}" for o, n in groups)
+        raise ValueError(
+            f"these trackers must be evaluated on envs with different options: {listed}"
+        )
+    return groups[0][0] if groups else {}
+
+
+def env_option_groups(
+    trackers: Mapping[str, Any], explicit: Mapping[str, Any] | None = None
+) -> list[tuple[dict[str, Any], list[str]]]:
+    """Group named trackers by the env options each is evaluated with: its recorded
+    ``env_options`` updated by ``explicit`` (a user's choice, e.g. ``--template-mode``; keys
+    whose value is ``None`` are not a choice). Returns ``[(options, [names]), ...]`` in the
+    order of first appearance, so a command builds one env per distinct option set.
+
+    An explicit choice wins over a tracker's recorded option; :func:`evaluate` then warns that
+    the tracker runs on another setup than it was trained with."""
+    chosen = {k: v for k, v in (explicit or {}).items() if v is not None}
+    return _group((name, {**_recorded_options(t), **chosen}) for name, t in trackers.items())
+
+
+def _group(
+    pairs: Iterable[tuple[str, dict[str, Any]]],
+) -> list[tuple[dict[str, Any], list[str]]]:
+    """``(name, options)`` pairs -> ``[(options, [names]), ...]``, equal options together."""
+    groups: list[tuple[dict[str, Any], list[str]]] = []
+    for name, options in pairs:
+        for existing, names in groups:
+            if _same_options(existing, options):
+                names.append(name)
+                break
+        else:
+            groups.append((options, [name]))
+    return groups
+
+
+def _same_options(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """Equal env options once missing keys read as the env's defaults."""
+    from trackers.registry import default_env_options
+
+    defaults = default_env_options()
+    full_a, full_b = {**defaults, **a}, {**defaults, **b}
+    return all(_option_value(full_a[k]) == _option_value(full_b[k]) for k in defaults)
+
+
+def _option_value(value: Any) -> Any:
+    """A comparable form of an env option value (a tuple and a list of numbers compare equal)."""
+    if isinstance(value, list | tuple):
+        return tuple(float(v) for v in value)
+    return value
+
+
+def _warn_env_mismatch(tracker: Any, name: str, env_info: Mapping[str, Any]) -> None:
+    """Warn when the env differs from the options ``tracker`` records (only trackers that
+    record options, i.e. have ``env_options``: learned ones)."""
+    import warnings
+
+    from trackers.registry import default_env_options
+
+    if getattr(tracker, "env_options", None) is None:
+        return
+    wanted = {**default_env_options(), **_recorded_options(tracker)}
+    for key, value in wanted.items():
+        if key in env_info and _option_value(env_info[key]) != _option_value(value):
+            warnings.warn(
+                f"evaluate: tracker {name!r} was trained with {key}={_option_value(value)!r} "
+                f"but the env uses {key}={_option_value(env_info[key])!r}: its scores are not "
+                "those of its training setup (docs/recipe.md, 'Eval options travel with the "
+                "checkpoint')",
+                UserWarning,
+                stacklevel=3,
+            )
 
 
 def tracker_name(tracker: Any, name: str | None = None) -> str:
@@ -182,6 +272,7 @@ def evaluate(
     try:
         with _episodes_seeded(env, seed):
             acc, frames, act_s, env_info = run(tracker, env, seed, tracklets, progress, name)
+        _warn_env_mismatch(tracker, name, env_info)
     finally:
         if owned is not None:
             owned.close()
@@ -237,8 +328,13 @@ def _env_info(u: Any) -> dict[str, Any]:
         "setting": getattr(setting, "name", None),
         "split": getattr(u, "split", None),
         "template_mode": getattr(u, "template_mode", None),
+        "search_enlargement": _listed(getattr(u, "search_enlargement", None)),
         "reference": getattr(u, "reference", None),
     }
+
+
+def _listed(value: Any) -> Any:
+    return list(value) if isinstance(value, tuple) else value
 
 
 def _check_indices(count: int, tracklets: Sequence[int] | None) -> list[int]:
@@ -339,6 +435,7 @@ def _run_vector(tracker, vec, seed, tracklets, progress, name):
         "setting": getattr(vec.get_attr("setting")[0], "name", None),
         "split": vec.get_attr("split")[0],
         "template_mode": vec.get_attr("template_mode")[0],
+        "search_enlargement": _listed(vec.get_attr("search_enlargement")[0]),
         "reference": vec.get_attr("reference")[0],
         "num_envs": num,
     }

@@ -39,7 +39,7 @@ import math
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -364,9 +364,12 @@ def _root(cfg: FinetuneConfig) -> str:
     return str(ensure_world(preset=cfg.preset, sensor=cfg.sensor, seed=cfg.world_seed))
 
 
-def train_env_factory(cfg: FinetuneConfig) -> Callable[[], gym.Env]:
+def train_env_factory(
+    cfg: FinetuneConfig, env_options: Mapping[str, Any] | None = None
+) -> Callable[[], gym.Env]:
     """A factory of training envs on the train split, the setting's *observed* categories only
-    (never the unseen ones), random tracklets; the sub-envs share the loaded data."""
+    (never the unseen ones), random tracklets; the sub-envs share the loaded data.
+    ``env_options``: the base tracker's ``env_options`` (its template mode, search region)."""
     from envs.data import KittiTracking
     from envs.tracking_env import TrackingEnv
 
@@ -381,6 +384,7 @@ def train_env_factory(cfg: FinetuneConfig) -> Callable[[], gym.Env]:
         reward=cfg.reward,
         start_frame="random",
         max_steps=cfg.clip_length if cfg.clip_length > 0 else None,
+        **(env_options or {}),
     )
     return base.clone
 
@@ -694,7 +698,7 @@ def finetune(
             None,
         )
     torch.set_num_threads(cfg.threads)
-    factory = make_env if make_env is not None else train_env_factory(cfg)
+    factory = make_env if make_env is not None else train_env_factory(cfg, base.env_options)
     out.mkdir(parents=True, exist_ok=True)
     _atomic_write_text(out / "config.json", json.dumps(_identity(cfg), indent=2) + "\n")
     if cfg.algo == "residual":
@@ -726,16 +730,17 @@ def load_result(out: str | Path) -> Any:
 def val_check(cfg: FinetuneConfig, base: Any, tuned: Any, out: Path) -> dict[str, Any]:
     """Base and fine-tuned tracker on the first ``val_max_tracklets`` observed-category val
     tracklets, eval seed 0 (a quick check only: too few tracklets to tell a gain from noise;
-    the protocol in docs/rl.md is what measures one)."""
+    the protocol in docs/rl.md is what measures one); each with its ``env_options``."""
     from envs.data import KittiTracking
     from envs.tracking_env import TrackingEnv
-    from training.evaluate import evaluate
+    from training.evaluate import env_options_for, evaluate
 
     setting = _setting(cfg)
     data = KittiTracking(_root(cfg), "val", list(setting.observed))
     result: dict[str, Any] = {}
     for name, tracker in (("base", base), ("finetuned", tuned)):
-        env = TrackingEnv(data, setting=setting, categories=setting.observed)
+        options = env_options_for([tracker])
+        env = TrackingEnv(data, setting=setting, categories=setting.observed, **options)
         subset = list(range(min(cfg.val_max_tracklets, env.num_tracklets)))
         rep = evaluate(tracker, env, tracklets=subset, seed=0)
         result[name] = {k: rep["mean"][k] for k in ("success", "precision")}
@@ -829,12 +834,15 @@ class ResidualTracker:
         self.scale = np.asarray(scale, dtype=np.float32)
         self.name = name
         self.log_std_init = float(log_std_init)
+        #: the base tracker's env options (it acts on the same observations)
+        self.env_options = dict(getattr(base, "env_options", None) or {})
 
     def save(self, path: str | Path) -> Path:
         """Write ``path`` (safetensors, atomic)."""
         from safetensors.torch import save_file
 
         from trackers.config import config_to_dict
+        from trackers.registry import env_options_metadata
 
         path = Path(path)
         tensors = {
@@ -853,6 +861,9 @@ class ResidualTracker:
             "name": self.name,
             "log_std_init": json.dumps(self.log_std_init),
         }
+        options = env_options_metadata(self.base)
+        if options is not None:  # as trackers.save: written only when not the env's defaults
+            meta["env_options"] = options
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
         save_file(tensors, str(tmp), metadata=meta)
         tmp.replace(path)
@@ -880,6 +891,7 @@ class ResidualTracker:
         from safetensors import safe_open
 
         import trackers
+        from trackers.registry import env_options_from_metadata
 
         path = Path(path)
         if path.is_dir():
@@ -914,6 +926,7 @@ class ResidualTracker:
         base.load_state_dict(
             {k[5:]: v for k, v in state.items() if k.startswith("base.")}, strict=True
         )
+        base.env_options = env_options_from_metadata(path, meta.get("env_options"))
         log_std = float(json.loads(meta["log_std_init"]))
         policy = _residual_policy(log_std)
         policy.load_state_dict(

@@ -294,6 +294,8 @@ class Trainer:
             self.pg = dist
         torch.manual_seed(cfg.seed)  # identical initial weights on every rank
         self.model = (model_factory or default_model_factory)(cfg).to(self.device)
+        # the env options it is validated with, carried by trackers.save (docs/recipe.md)
+        self.model.env_options = cfg.env_options()
         if cfg.init_weights is not None:
             self._load_init_weights(cfg.init_weights)
         self.drct = None  # DRCT's auxiliary branch or the -RD randomiser (training.drct)

@@ -189,7 +189,7 @@ def score_candidates(
     """
     from envs.data import get_setting
     from envs.tracking_env import make_synthetic_env
-    from training.evaluate import evaluate, save_report
+    from training.evaluate import env_options_for, evaluate, json_safe, save_report
 
     config = config if config is not None else SelectionConfig()
     if not candidates:
@@ -207,8 +207,10 @@ def score_candidates(
         for part in config.parts:
             remove_stale_temps(cache / f"w{part.world_seed}-{part.split}")
     per_part: dict[str, dict[str, dict[str, float]]] = {c: {} for c in candidates}
+    # each candidate is scored with the env options it records (e.g. recipe v2's template mode)
+    options = {c: env_options_for([loaded[c]]) for c in candidates}
     for part in config.parts:
-        env = None
+        envs: dict[str, Any] = {}  # JSON of the options -> the part's env with them
         for candidate in candidates:
             key = {
                 "candidate": candidate,
@@ -222,9 +224,13 @@ def score_candidates(
             }
             if config.dataset != "synthetic":  # keys of earlier (synthetic) caches unchanged
                 key["dataset"] = config.dataset
+            if options[candidate]:  # likewise: only a candidate that records options
+                key["env_options"] = json_safe(options[candidate])
             path = _cache_path(cache, part, candidate, digests[candidate]) if cache else None
             report = _read_cached(path, key)
             if report is None:
+                env_key = json.dumps(json_safe(options[candidate]), sort_keys=True)
+                env = envs.get(env_key)
                 if env is None and config.dataset == "nuscenes":
                     from envs.data.nuscenes import SOT_SPLITS
                     from envs.nuscenes_env import make_nuscenes_env
@@ -236,6 +242,7 @@ def score_candidates(
                         split=SOT_SPLITS[part.split],
                         setting=config.setting,
                         categories=observed,
+                        **options[candidate],
                     )
                 if env is None:
                     env = make_synthetic_env(
@@ -245,7 +252,9 @@ def score_candidates(
                         split=part.split,
                         setting=config.setting,
                         categories=observed,
+                        **options[candidate],
                     )
+                envs[env_key] = env
                 report = evaluate(
                     loaded[candidate],
                     env,
@@ -273,7 +282,7 @@ def score_candidates(
                     f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
                     f"over {int(entry['frames'])} frames"
                 )
-        if env is not None:
+        for env in envs.values():
             env.close()
     rows = [
         {"candidate": c} | pooled(list(per_part[c].values())) | {"parts": per_part[c]}

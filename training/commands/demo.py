@@ -131,7 +131,14 @@ def run(args: argparse.Namespace) -> int:
     from envs.synthetic import ensure_world
     from envs.tracking_env import make_kitti_env
     from trackers.baselines import BASELINES
-    from training.evaluate import evaluate, format_table, load_tracker, plot_curves, save_report
+    from training.evaluate import (
+        env_options_for,
+        evaluate,
+        format_table,
+        load_tracker,
+        plot_curves,
+        save_report,
+    )
 
     if args.max_tracklets is not None and args.max_tracklets < 1:
         raise SystemExit(f"--max-tracklets must be >= 1, got {args.max_tracklets}")
@@ -174,6 +181,19 @@ def run(args: argparse.Namespace) -> int:
                 tracker = load_tracker(name)
         except Exception as exc:  # noqa: BLE001 - skip what cannot be loaded, say why
             print(f"[demo] skipping {name}: {type(exc).__name__}: {exc}", flush=True)
+            continue
+        options = env_options_for([tracker])
+        if options:  # a tracker trained with other env options (recipe v2) gets its own env
+            own = make_kitti_env(root=str(root), split=args.split, setting=args.setting, **options)
+            reports[name] = evaluate(
+                tracker,
+                own,
+                tracklets=subset,
+                name=name,
+                progress=not args.no_progress,
+                num_envs=max(1, args.num_envs),
+            )
+            own.close()
             continue
         if name in BASELINES or name in BASELINE_NAMES or args.num_envs <= 1:
             target = env

@@ -6,7 +6,10 @@ Example::
         --setting kitti-1 --out runs/eval
 
 The env is built by :func:`build_env` from the parsed arguments, so other commands (and the
-weather option) can reuse or extend it with extra env keywords.
+weather option) can reuse or extend it with extra env keywords. Each tracker is evaluated with
+the env options it records (``tracker.env_options``, e.g. recipe v2's merged template): one env
+per distinct option set; an explicit ``--template-mode`` wins, and ``evaluate`` warns for a
+tracker it contradicts (docs/recipe.md).
 """
 
 from __future__ import annotations
@@ -106,9 +109,11 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--categories", nargs="+", default=None, help="restrict to categories")
     parser.add_argument(
         "--template-mode",
-        default="first_and_previous",
+        default=None,
         choices=TEMPLATE_MODES,
-        help="which earlier frames give the template points",
+        help="which earlier frames give the template points (default: the mode each tracker "
+        "records, e.g. first_and_previous_merged for recipe v2, else first_and_previous; a "
+        "mode that contradicts a tracker's is used, with a warning)",
     )
     parser.add_argument(
         "--reference",
@@ -127,9 +132,14 @@ def env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
         "split": args.split,
         "setting": setting,
         "categories": args.categories,
-        "template_mode": args.template_mode,
         "reference": args.reference,
-    }
+    } | ({} if args.template_mode is None else {"template_mode": args.template_mode})
+
+
+def explicit_env_options(args: argparse.Namespace) -> dict[str, Any]:
+    """The env options the user chose on the command line (``None``: not chosen), which win
+    over the options a tracker records (``training.evaluate.env_option_groups``)."""
+    return {"template_mode": getattr(args, "template_mode", None)}
 
 
 def build_env(args: argparse.Namespace, **overrides: Any):
@@ -174,6 +184,7 @@ def build_vector_env(args: argparse.Namespace, num_envs: int, **overrides: Any):
 
 def run(args: argparse.Namespace) -> int:
     from training.evaluate import (
+        env_option_groups,
         evaluate,
         format_table,
         observation_keys_for,
@@ -187,24 +198,29 @@ def run(args: argparse.Namespace) -> int:
     # every tracker before any data or evaluation, so a typo in the last one fails in a second
     loaded = load_trackers(args)
     check_out(args)
-    keys = observation_keys_for(list(loaded.values()))  # e.g. M2-Track's previous frame
-    env = (
-        build_env(args, observation_keys=keys)
-        if args.num_envs == 1
-        else build_vector_env(args, args.num_envs, observation_keys=keys)
-    )
     reports = {}
-    for name, tracker in loaded.items():
+    # one env per distinct option set the trackers record (e.g. recipe v2's template mode)
+    for options, names in env_option_groups(loaded, explicit_env_options(args)):
+        group = [loaded[name] for name in names]
+        keys = observation_keys_for(group)  # e.g. M2-Track's previous frame
+        env = (
+            build_env(args, observation_keys=keys, **options)
+            if args.num_envs == 1
+            else build_vector_env(args, args.num_envs, observation_keys=keys, **options)
+        )
         n = env.unwrapped.num_tracklets if args.num_envs == 1 else env.get_attr("num_tracklets")[0]
         subset = None if args.max_tracklets is None else list(range(min(args.max_tracklets, n)))
-        reports[name] = evaluate(
-            tracker,
-            env,
-            seed=args.eval_seed,
-            tracklets=subset,
-            name=name,
-            progress=not args.no_progress,
-        )
+        for name, tracker in zip(names, group, strict=True):
+            reports[name] = evaluate(
+                tracker,
+                env,
+                seed=args.eval_seed,
+                tracklets=subset,
+                name=name,
+                progress=not args.no_progress,
+            )
+        env.close()
+    reports = {name: reports[name] for name in loaded}  # the order of --tracker
     print(format_table(reports))
     if args.out:
         from pathlib import Path
@@ -213,7 +229,6 @@ def run(args: argparse.Namespace) -> int:
         save_report(reports, out / "report.json")
         paths = plot_curves(reports, out)
         print(f"wrote {out / 'report.json'} and {', '.join(str(p) for p in paths)}")
-    env.close()
     return 0
 
 
@@ -263,15 +278,20 @@ def _run_weather(args: argparse.Namespace) -> int:
     runs every condition on N sub-envs (batched ``act``); ``--fog-mode`` picks the fog rule."""
     from pathlib import Path
 
-    from training.evaluate import observation_keys_for
+    from training.evaluate import env_option_groups, observation_keys_for
     from training.robustness import run_weather_eval
 
     loaded = load_trackers(args)
     check_out(args)
-    base = build_env(args, observation_keys=observation_keys_for(list(loaded.values())))
-    n = base.num_tracklets
+    bases = {}  # tracker name -> the clean env of its option set (one per distinct set)
+    for options, names in env_option_groups(loaded, explicit_env_options(args)):
+        keys = observation_keys_for([loaded[name] for name in names])
+        base = build_env(args, observation_keys=keys, **options)
+        bases.update(dict.fromkeys(names, base))
+    n = next(iter(bases.values())).num_tracklets
     subset = None if args.max_tracklets is None else list(range(min(args.max_tracklets, n)))
     for name, tracker in loaded.items():
+        base = bases[name]
         slug = "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
         run_weather_eval(
             tracker,
@@ -288,5 +308,6 @@ def _run_weather(args: argparse.Namespace) -> int:
             num_envs=args.num_envs if args.num_envs > 1 else None,
             fog_mode=args.fog_mode,
         )
-    base.close()
+    for base in {id(b): b for b in bases.values()}.values():
+        base.close()
     return 0
