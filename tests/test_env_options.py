@@ -338,3 +338,16 @@ def test_residual_tracker_keeps_its_base_options(tmp_path):
     assert "env_options" not in _metadata(plain)
     assert ResidualTracker.load(plain).env_options == {}
     assert np.allclose(again.scale, tuned.scale)
+
+
+def test_finetune_envs_use_the_base_trackers_options():
+    """``pointtrack finetune`` trains (and val-checks) on the base tracker's options."""
+    from training.finetune import FinetuneConfig, train_env_factory
+
+    cfg = FinetuneConfig(preset="tiny", clip_length=4)
+    env = train_env_factory(cfg, V2_P2B)()
+    assert env.template_mode == MERGED and env.search_enlargement == (1.25, 2.0)
+    gpt = train_env_factory(cfg, {"search_enlargement": GPT_SEARCH_ENLARGEMENT})()
+    assert gpt.template_mode == "first_and_previous"
+    assert gpt.search_enlargement == GPT_SEARCH_ENLARGEMENT
+    assert train_env_factory(cfg)().template_mode == "first_and_previous"
