@@ -287,6 +287,7 @@ def _run_weather(args: argparse.Namespace) -> int:
             tracklets=subset,
             num_envs=args.num_envs if args.num_envs > 1 else None,
             fog_mode=args.fog_mode,
+            workers=args.workers,
         )
     base.close()
     return 0
