@@ -142,3 +142,43 @@ def test_cli_weather_with_num_envs(tmp_path, capsys):
     # the analysis has every stepped frame once (the report also counts each first frame)
     frames = res["clean"]["frames"] - res["clean"]["tracklets"]
     assert res["analysis"]["snow"]["5"]["frames"] == res["analysis"]["fog"]["5"]["frames"] == frames
+
+
+@pytest.mark.slow
+def test_forked_workers_give_the_one_process_result(one_torch_thread):
+    """The conditions are independent: two worker processes give the one-process result, per
+    tracklet and in the analysis (shipped P2B on the tiny world, so the tracker's own sampling
+    state would show if it leaked between conditions)."""
+    import trackers
+    from envs.tracking_env import make_synthetic_env
+
+    base = make_synthetic_env(preset="tiny", split="test", setting="kitti-1")
+    tracker = trackers.load("p2b-kitti1-u")
+    kw = {"tracklets": [0, 5], "seed": 0, "weather_seed": 3}
+    single = run_weather_benchmark(tracker, base.clone, ("fog", "rain"), (2, 5), **kw)
+    forked = run_weather_benchmark(tracker, base.clone, ("fog", "rain"), (2, 5), workers=2, **kw)
+    _same(single, forked)
+
+
+def test_map_forked_keeps_order_and_names_a_failing_item():
+    from training.robustness import map_forked
+
+    seen = []
+    assert map_forked(lambda x: x * x, [1, 2, 3, 4, 5], 2, lambda i, r: seen.append(i)) == [
+        1,
+        4,
+        9,
+        16,
+        25,
+    ]
+    assert sorted(seen) == [1, 2, 3, 4, 5]
+
+    def boom(x):
+        if x == ("rain", 3):
+            raise ValueError("bad level")
+        return x
+
+    with pytest.raises(RuntimeError, match=r"(?s)\('rain', 3\) failed in a worker.*bad level"):
+        map_forked(boom, [("fog", 1), ("rain", 3)], 2)
+    with pytest.raises(ValueError, match="workers must be None or an integer >= 1; got 0"):
+        run_weather_benchmark(None, None, "fog", (1,), workers=0)

@@ -60,6 +60,7 @@ __all__ = [
     "HAUSDORFF_EDGES_M",
     "format_weather_table",
     "hausdorff",
+    "map_forked",
     "plot_analysis",
     "plot_success_vs_level",
     "robustness_metrics",
@@ -229,6 +230,7 @@ def run_weather_benchmark(
     log: Callable[[str], None] | None = None,
     num_envs: int | None = None,
     fog_mode: str = "reference",
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """Evaluate ``tracker`` clean and under every ``(kind, level)``; see the module docstring.
 
@@ -253,6 +255,9 @@ def run_weather_benchmark(
             tracker's batched forward can differ in the last bit (see ``evaluate``).
         fog_mode: the fog rule, ``"reference"`` (default) or ``"lossy"``
             (:mod:`envs.weather.fog`).
+        workers: run the settings in this many forked processes (one torch thread each; the
+            settings are independent, so the result is the same as with ``None``, one process).
+            Needs the ``fork`` start method (Linux); progress bars are off in the workers.
     """
     import gymnasium as gym
 
@@ -263,14 +268,14 @@ def run_weather_benchmark(
     kinds_t = weather_kinds(kinds)
     levels_t = tuple(check_level(v) for v in levels)
     check_fog_mode(fog_mode)
-    if num_envs is not None and (
-        isinstance(num_envs, bool) or int(num_envs) != num_envs or num_envs < 1
-    ):
-        raise ValueError(f"num_envs must be None or an integer >= 1; got {num_envs!r}")
+    _check_count("num_envs", num_envs)
+    _check_count("workers", workers)
     name = _tracker_name(tracker, name)
     say = log or (lambda _msg: None)
+    show_progress = progress and (workers or 1) == 1
 
-    def one(kind: str | None, level: int | None):
+    def one(condition: tuple[str | None, int | None]):
+        kind, level = condition
         recorders = []
         for _ in range(num_envs or 1):
             env = make_env()
@@ -284,14 +289,22 @@ def run_weather_benchmark(
             target = gym.vector.SyncVectorEnv([lambda r=r: r for r in recorders])
         try:
             report = evaluate(
-                tracker, target, seed=seed, tracklets=tracklets, name=name, progress=progress
+                tracker, target, seed=seed, tracklets=tracklets, name=name, progress=show_progress
             )
         finally:
             target.close()
         return report, _real_records(recorders, tracklets, vector=num_envs is not None)
 
-    clean, clean_records = one(None, None)
-    say(f"clean: success {clean['mean']['success']:.2f} precision {clean['mean']['precision']:.2f}")
+    conditions = [(None, None)] + [(k, lv) for k in kinds_t for lv in levels_t]
+
+    def said(condition, outcome):
+        kind, level = condition
+        mean = outcome[0]["mean"]
+        label = "clean" if kind is None else describe(kind, level)
+        say(f"{label}: success {mean['success']:.2f} precision {mean['precision']:.2f}")
+
+    outcomes = dict(zip(conditions, map_forked(one, conditions, workers, said), strict=True))
+    clean, clean_records = outcomes[(None, None)]
     result: dict[str, Any] = {
         "tracker": name,
         "kinds": list(kinds_t),
@@ -309,18 +322,88 @@ def run_weather_benchmark(
         result["weather"][kind] = {}
         result["analysis"][kind] = {}
         for level in levels_t:
-            report, records = one(kind, level)
+            report, records = outcomes[(kind, level)]
             result["weather"][kind][level] = report
             if analysis:
                 result["analysis"][kind][level] = _analysis(clean_records, records)
-            say(
-                f"{describe(kind, level)}: success {report['mean']['success']:.2f} "
-                f"precision {report['mean']['precision']:.2f}"
-            )
         result["robustness"][kind] = _robustness(clean, result["weather"][kind], levels_t)
     if out_dir is not None:
         save_weather(result, out_dir)
     return result
+
+
+def _check_count(name: str, value: Any) -> None:
+    if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
+        raise ValueError(f"{name} must be None or an integer >= 1; got {value!r}")
+
+
+def map_forked(
+    fn: Callable[[Any], Any],
+    items: Sequence[Any],
+    workers: int | None,
+    done: Callable[[Any, Any], None] | None = None,
+) -> list[Any]:
+    """``[fn(item) for item in items]``, in ``workers`` forked processes when ``workers > 1``.
+
+    The children inherit ``fn`` (a closure is fine: nothing is pickled but the items and the
+    results) and run one torch thread each; item ``i`` goes to worker ``i % workers``.
+    ``done(item, result)`` is called in the parent as each result arrives. A failing item
+    raises ``RuntimeError`` naming it, with the child's traceback; a child that dies without a
+    result (killed) raises too, instead of waiting forever.
+    """
+    import multiprocessing as mp
+    import queue as queue_module
+    import traceback
+
+    if workers is None or workers <= 1 or len(items) <= 1:
+        results = []
+        for item in items:
+            results.append(fn(item))
+            if done is not None:
+                done(item, results[-1])
+        return results
+    if "fork" not in mp.get_all_start_methods():
+        raise RuntimeError("workers > 1 needs the 'fork' start method (Linux); use workers=None")
+    ctx = mp.get_context("fork")
+    results_q = ctx.Queue()
+
+    def work(indices: list[int]) -> None:
+        import torch
+
+        torch.set_num_threads(1)
+        for i in indices:
+            try:
+                results_q.put((i, fn(items[i]), None))
+            except BaseException:  # noqa: BLE001 - reported to the parent, which raises
+                results_q.put((i, None, traceback.format_exc()))
+
+    n = min(int(workers), len(items))
+    procs = [ctx.Process(target=work, args=(list(range(w, len(items), n)),)) for w in range(n)]
+    for proc in procs:
+        proc.start()
+    results: dict[int, Any] = {}
+    try:
+        while len(results) < len(items):
+            try:
+                i, value, error = results_q.get(timeout=5.0)
+            except queue_module.Empty:
+                if not any(proc.is_alive() for proc in procs) and results_q.empty():
+                    missing = [items[i] for i in range(len(items)) if i not in results]
+                    raise RuntimeError(
+                        f"worker processes ended without results for {missing}"
+                    ) from None
+                continue
+            if error is not None:
+                raise RuntimeError(f"{items[i]!r} failed in a worker process:\n{error}")
+            results[i] = value
+            if done is not None:
+                done(items[i], value)
+    finally:
+        for proc in procs:
+            if proc.is_alive() and len(results) < len(items):
+                proc.terminate()
+            proc.join()
+    return [results[i] for i in range(len(items))]
 
 
 def _real_records(
@@ -537,6 +620,13 @@ def add_weather_arguments(parser) -> None:
         "returns relocate points, none removed; default) or lossy (shifted "
         "tables, weak returns removed); docs/weather.md",
     )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="run the weather conditions in N forked processes, one torch thread each (the "
+        "result does not depend on N; Linux); default 1",
+    )
 
 
 def run_weather_eval(
@@ -555,6 +645,7 @@ def run_weather_eval(
     print_fn: Callable[[str], None] = print,
     num_envs: int | None = None,
     fog_mode: str = "reference",
+    workers: int | None = None,
 ) -> dict[str, Any]:
     """What ``pointtrack eval --weather ...`` runs: :func:`run_weather_benchmark`, then print the
     Tables III–IV layout and (with ``out_dir``) write JSON, table and plots."""
@@ -575,6 +666,7 @@ def run_weather_eval(
         log=print_fn,
         num_envs=num_envs,
         fog_mode=fog_mode,
+        workers=workers,
     )
     print_fn(format_weather_table(result))
     if out_dir is not None:
