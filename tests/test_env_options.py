@@ -351,3 +351,29 @@ def test_finetune_envs_use_the_base_trackers_options():
     assert gpt.template_mode == "first_and_previous"
     assert gpt.search_enlargement == GPT_SEARCH_ENLARGEMENT
     assert train_env_factory(cfg)().template_mode == "first_and_previous"
+
+
+def test_cli_weather_runs_each_tracker_on_its_options(tmp_path, monkeypatch):
+    """``pointtrack eval --weather``: the clean env of each tracker (and so every corrupted
+    clone of it) has the tracker's options."""
+    import training.commands.eval as eval_cmd
+    import training.robustness as robustness
+
+    v2 = str(trackers.save(_slim("p2b", V2_P2B), tmp_path / "v2.safetensors"))
+    seen = {}
+
+    def spy(tracker, make_env, *args, name, **kwargs):
+        seen[name] = make_env().template_mode
+        return {}
+
+    monkeypatch.setattr(robustness, "run_weather_eval", spy)
+    monkeypatch.setattr(
+        eval_cmd,
+        "load_trackers",
+        lambda args: {"previous_box": PreviousBox(), v2: trackers.load(v2)},
+    )
+    from training.cli import main
+
+    argv = ["eval", "--preset", "tiny", "--weather", "rain", "--no-progress"]
+    assert main([*argv, "--tracker", "previous_box", v2]) == 0
+    assert seen == {"previous_box": "first_and_previous", v2: MERGED}
