@@ -377,3 +377,28 @@ def test_cli_weather_runs_each_tracker_on_its_options(tmp_path, monkeypatch):
     argv = ["eval", "--preset", "tiny", "--weather", "rain", "--no-progress"]
     assert main([*argv, "--tracker", "previous_box", v2]) == 0
     assert seen == {"previous_box": "first_and_previous", v2: MERGED}
+
+
+def test_cli_demo_runs_a_tracker_on_its_options(tmp_path):
+    from training.cli import main
+
+    v2 = str(trackers.save(_slim("p2b", V2_P2B), tmp_path / "v2.safetensors"))
+    out = tmp_path / "demo"
+    argv = ["demo", "--preset", "tiny", "--out", str(out), "--no-progress", "--num-envs", "2"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert main([*argv, "--max-tracklets", "1", "--tracker", "previous_box", v2]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report[v2]["env"]["template_mode"] == MERGED
+    assert report[v2]["env"]["num_envs"] == 2
+    assert report["previous_box"]["env"]["template_mode"] == "first_and_previous"
+
+
+def test_numpy_numbers_are_valid_options():
+    from trackers.registry import check_env_options
+
+    got = check_env_options({"search_enlargement": [np.float32(1.0), np.float64(4.0)]}, "x")
+    assert got == {"search_enlargement": (1.0, 4.0)}
+    assert all(type(v) is float for v in got["search_enlargement"])
+    with pytest.raises(ValueError, match="x: env_options search_enlargement"):
+        check_env_options({"search_enlargement": [True, 2.0]}, "x")

@@ -152,6 +152,7 @@ def check_env_options(options: Any, where: str) -> dict[str, Any]:
     key and the bad value: an unknown key, a template mode the env lacks, a search enlargement
     that is not two finite numbers with ``scale > 0`` and ``offset_m >= 0``."""
     import math
+    import numbers
 
     from envs.tracking_env import TEMPLATE_MODES
 
@@ -175,7 +176,7 @@ def check_env_options(options: Any, where: str) -> dict[str, Any]:
         ok = (
             isinstance(value, list | tuple)
             and len(value) == 2
-            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+            and all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in value)
             and all(math.isfinite(v) for v in value)
         )
         if not ok or not (value[0] > 0 and value[1] >= 0):
