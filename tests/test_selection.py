@@ -175,3 +175,20 @@ def test_load_candidate_reads_training_checkpoints_and_names_bad_files(tmp_path)
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="candidate '.*junk.pt'"):
         load_candidate(str(tmp_path / "junk.pt"))
+
+
+def test_score_candidates_gives_m2track_the_previous_frame(tiny_config, tmp_path, one_torch_thread):
+    """A candidate that reads an opt-in observation key (M2-Track's ``previous_search``) is
+    scored on an env that provides it, next to one that does not need it."""
+    import torch
+
+    import trackers
+
+    torch.manual_seed(0)
+    path = trackers.save(
+        trackers.make("m2track", **trackers.size_config("m2track", "slim")),
+        tmp_path / "m2track.safetensors",
+    )
+    rows = score_candidates([str(path), "previous_box"], tiny_config)
+    assert {r["candidate"] for r in rows} == {str(path), "previous_box"}
+    assert all(r["frames"] > 0 and 0.0 <= r["success"] <= 100.0 for r in rows)

@@ -189,7 +189,13 @@ def score_candidates(
     """
     from envs.data import get_setting
     from envs.tracking_env import make_synthetic_env
-    from training.evaluate import env_options_for, evaluate, json_safe, save_report
+    from training.evaluate import (
+        env_options_for,
+        evaluate,
+        json_safe,
+        observation_keys_for,
+        save_report,
+    )
 
     config = config if config is not None else SelectionConfig()
     if not candidates:
@@ -209,6 +215,10 @@ def score_candidates(
     per_part: dict[str, dict[str, dict[str, float]]] = {c: {} for c in candidates}
     # each candidate is scored with the env options it records (e.g. recipe v2's template mode)
     options = {c: env_options_for([loaded[c]]) for c in candidates}
+    # and with the opt-in observation keys it reads (M2-Track's previous frame)
+    env_kwargs = {
+        c: {**options[c], "observation_keys": observation_keys_for([loaded[c]])} for c in candidates
+    }
     for part in config.parts:
         envs: dict[str, Any] = {}  # JSON of the options -> the part's env with them
         for candidate in candidates:
@@ -229,7 +239,7 @@ def score_candidates(
             path = _cache_path(cache, part, candidate, digests[candidate]) if cache else None
             report = _read_cached(path, key)
             if report is None:
-                env_key = json.dumps(json_safe(options[candidate]), sort_keys=True)
+                env_key = json.dumps(json_safe(env_kwargs[candidate]), sort_keys=True)
                 env = envs.get(env_key)
                 if env is None and config.dataset == "nuscenes":
                     from envs.data.nuscenes import SOT_SPLITS
@@ -242,7 +252,7 @@ def score_candidates(
                         split=SOT_SPLITS[part.split],
                         setting=config.setting,
                         categories=observed,
-                        **options[candidate],
+                        **env_kwargs[candidate],
                     )
                 if env is None:
                     env = make_synthetic_env(
@@ -252,7 +262,7 @@ def score_candidates(
                         split=part.split,
                         setting=config.setting,
                         categories=observed,
-                        **options[candidate],
+                        **env_kwargs[candidate],
                     )
                 envs[env_key] = env
                 report = evaluate(
