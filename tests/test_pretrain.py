@@ -204,6 +204,18 @@ def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
         trainer(tmp_path / "missing.safetensors")
     with pytest.raises(ConfigError, match="init_weights"):
         config_from_dict({"init_weights": " "})
+    # a training checkpoint (what `pointtrack select` names) starts from its validated weights
+    from training.checkpoint import tracker_from_checkpoint
+    from training.pretrain import train
+
+    first = tiny_config(tmp_path / "first", batch_size=2, model_size="slim", ema_decay=0.5)
+    train(first, train_data=data, val_fn=False)
+    validated = tracker_from_checkpoint(tmp_path / "first" / "last.pt").state_dict()
+    model = trainer(tmp_path / "first" / "last.pt").model
+    for k, v in validated.items():
+        assert torch.equal(model.state_dict()[k], v), k
+    with pytest.raises(TrainingError, match="holds a 'p2b' checkpoint, not 'bat'"):
+        trainer(tmp_path / "first" / "last.pt", tracker="bat")
 
 
 def test_every_train_flag_reaches_the_config():

@@ -58,6 +58,7 @@ from training.checkpoint import (
     atomic_save,
     check_resumable,
     config_differences,
+    is_training_checkpoint,
     load_weights,
     read_checkpoint,
     remove_stale_temps,
@@ -361,7 +362,9 @@ class Trainer:
         self._log = None
 
     def _load_init_weights(self, source: str) -> None:
-        """Copy the weights of a tracker checkpoint (same tracker, same config) into the model."""
+        """Copy the weights of a tracker checkpoint (same tracker, same config) into the model:
+        a tracker file, a shipped name, or a training checkpoint (``RUN/best.pt``: its
+        validated weights, as ``pointtrack select`` scores them)."""
         from trackers.config import config_to_dict
         from trackers.registry import find_checkpoint, load_file
 
@@ -371,8 +374,13 @@ class Trainer:
                 f"init_weights={source!r}: no such checkpoint file or shipped checkpoint name"
             )
         try:
-            start = load_file(path, expect=self.cfg.tracker)
-        except (ValueError, FileNotFoundError) as exc:
+            if is_training_checkpoint(path):
+                start = tracker_from_checkpoint(path)
+                if start.name != self.cfg.tracker:
+                    raise ValueError(f"holds a {start.name!r} checkpoint, not {self.cfg.tracker!r}")
+            else:
+                start = load_file(path, expect=self.cfg.tracker)
+        except (ValueError, FileNotFoundError, CheckpointError) as exc:
             raise TrainingError(f"init_weights={source!r}: {exc}") from exc
         details = config_differences(
             config_to_dict(start.config), config_to_dict(self.model.config), "run"
