@@ -131,7 +131,8 @@ def test_available_lists_kinds_in_order():
         "constant_velocity",
         *shipped,
     ]
-    assert set(shipped) == {f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"}
+    matching = {f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"}
+    assert set(shipped) == matching | {"p2b-kitti1-drct", "m2track-kitti1-u"}
     for name in ("p2b", "bat", "gpt"):  # the matching trackers (m2track: tests/test_m2track.py)
         assert trackers.size_config(name, "default") == {}
         slim = trackers.make(name, **trackers.size_config(name, "slim"))
@@ -286,3 +287,22 @@ def test_forward_does_not_modify_the_batch(name, fast):
     with torch.no_grad():
         model(batch)
     assert all(torch.equal(batch[k], kept[k]) for k in batch)
+
+
+@pytest.mark.parametrize("name", trackers.available("checkpoint"))
+def test_every_shipped_checkpoint_tracks_in_the_env(name, one_torch_thread):
+    """Each shipped checkpoint loads (digest checked), gets the observation keys it reads from
+    the env, and acts with finite actions for a few steps."""
+    from envs.tracking_env import TrackingEnv, make_toy_dataset
+    from training.evaluate import observation_keys_for
+
+    tracker = trackers.load(name)
+    toy = make_toy_dataset(categories=("Car", "Pedestrian"), num_frames=(4, 4), num_clutter=500)
+    env = TrackingEnv(toy, observation_keys=observation_keys_for([tracker]))
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):
+        action = np.asarray(tracker.act(obs))
+        assert action.shape == (4,) and np.isfinite(action).all()
+        obs, _, terminated, truncated, _ = env.step(action.astype(np.float32))
+        if terminated or truncated:
+            break
