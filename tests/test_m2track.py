@@ -388,3 +388,16 @@ def test_box_aware_variant_trains_acts_and_round_trips(tmp_path):
     np.testing.assert_array_equal(trackers.load(path).act(obs), model.act(obs))
     model.fast_eval = False
     np.testing.assert_allclose(model.act(obs), trackers.load(path).act(obs), atol=1e-5)
+
+
+def test_cli_demo_gives_m2track_the_previous_frame(tmp_path):
+    """`pointtrack demo` runs the shipped M2-Track checkpoint: its env serves `previous_search`."""
+    import json
+
+    from training.cli import main
+
+    out = tmp_path / "demo"
+    argv = ["demo", "--preset", "tiny", "--out", str(out), "--no-progress", "--max-tracklets", "1"]
+    assert main([*argv, "--tracker", "previous_box", "m2track-kitti1-u"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["m2track-kitti1-u"]["frames"] == report["previous_box"]["frames"] > 0

@@ -129,13 +129,14 @@ def run(args: argparse.Namespace) -> int:
     import gymnasium as gym
 
     from envs.synthetic import ensure_world
-    from envs.tracking_env import make_kitti_env
+    from envs.tracking_env import OBSERVATION_KEYS, make_kitti_env
     from trackers.baselines import BASELINES
     from training.evaluate import (
         env_options_for,
         evaluate,
         format_table,
         load_tracker,
+        observation_keys_for,
         plot_curves,
         save_report,
     )
@@ -183,8 +184,17 @@ def run(args: argparse.Namespace) -> int:
             print(f"[demo] skipping {name}: {type(exc).__name__}: {exc}", flush=True)
             continue
         options = env_options_for([tracker])
-        if options:  # a tracker trained with other env options (recipe v2) gets its own env
-            own = make_kitti_env(root=str(root), split=args.split, setting=args.setting, **options)
+        keys = observation_keys_for([tracker])
+        # a tracker trained with other env options (recipe v2) or reading an opt-in
+        # observation key (M2-Track's previous frame) gets its own env
+        if options or keys != OBSERVATION_KEYS:
+            own = make_kitti_env(
+                root=str(root),
+                split=args.split,
+                setting=args.setting,
+                observation_keys=keys,
+                **options,
+            )
             reports[name] = evaluate(
                 tracker,
                 own,
