@@ -397,8 +397,7 @@ def _kill_after(
     return None
 
 
-def _timed(cmd: list[str], cwd: Path | None = None) -> float:
-    t0 = time.perf_counter()
+def _run_quietly(cmd: list[str], cwd: Path | None = None) -> None:
     subprocess.run(
         cmd,
         env=_env(),
@@ -408,6 +407,11 @@ def _timed(cmd: list[str], cwd: Path | None = None) -> float:
         stderr=subprocess.DEVNULL,
         timeout=600,
     )
+
+
+def _timed(cmd: list[str], cwd: Path | None = None) -> float:
+    t0 = time.perf_counter()
+    _run_quietly(cmd, cwd)
     return time.perf_counter() - t0
 
 
@@ -435,14 +439,7 @@ def test_sigkill_generate_leaves_nothing_and_regenerates_identically(tmp_path):
         _kill_after(gen + [str(out)], delay)
         # never a partial world under the final name
         assert not out.exists() or verify_world(out) == []
-        subprocess.run(
-            gen + [str(out)],
-            env=_env(),
-            check=True,
-            timeout=600,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        _run_quietly(gen + [str(out)])
         assert json.loads((out / "manifest.json").read_text())["files"] == files
         assert _leftovers(parent) == []
 
@@ -562,14 +559,7 @@ def test_sigkill_select_never_reads_a_partial_report(tiny, tmp_path):
         _kill_after(cmd + [str(out)], random.Random(seed).uniform(0.3, 0.95) * full_s)
         for cached in (out / "parts").rglob("*.json") if out.exists() else []:
             json.loads(cached.read_text())  # every report on disk is complete
-        subprocess.run(
-            cmd + [str(out)],
-            env=_env(),
-            check=True,
-            timeout=600,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
+        _run_quietly(cmd + [str(out)])
         assert json.loads((out / "selection.json").read_text())["ranking"] == expected
         assert _leftovers(out) == []
 

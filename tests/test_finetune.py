@@ -376,3 +376,62 @@ def test_sigkill_and_resume_through_the_cli(tmp_path):
     assert ft._read_meta(out / "state.safetensors")["finished"]
     trackers.load(out / "tracker.safetensors")
     assert not list(out.glob(".*tmp*"))
+
+
+def test_every_finetune_flag_reaches_the_config():
+    """Each config field has its flag, and a value given on the command line arrives in the
+    config with the field's type (a float flag parsed as int, or a dropped flag, would change
+    a run silently)."""
+    import argparse
+    import dataclasses
+
+    from training.commands.finetune import add_arguments, build_config
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    dests = {a.dest for a in parser._actions}
+    fields = {f.name: f for f in dataclasses.fields(ft.FinetuneConfig)}
+    assert set(fields) <= dests
+    given = {
+        "tracker": ("bat-kitti1-u", "bat-kitti1-u"),
+        "algo": ("residual", "residual"),
+        "setting": ("kitti-2", "kitti-2"),
+        "preset": ("small", "small"),
+        "sensor": ("hdl32", "hdl32"),
+        "world_seed": ("3", 3),
+        "data_root": ("/data/k", "/data/k"),
+        "reward": ("iou_bev", "iou_bev"),
+        "clip_length": ("16", 16),
+        "timesteps": ("512", 512),
+        "num_envs": ("2", 2),
+        "n_steps": ("32", 32),
+        "batch_size": ("16", 16),
+        "n_epochs": ("3", 3),
+        "lr": ("0.001", 1e-3),
+        "tracker_lr": ("2e-5", 2e-5),
+        "train_parts": ("all", "all"),
+        "action_mode": ("soft", "soft"),
+        "critic": ("separate", "separate"),
+        "log_std_init": ("-3", -3.0),
+        "warmup_rollouts": ("2", 2),
+        "target_kl": ("0.05", 0.05),
+        "clip_range": ("0.2", 0.2),
+        "max_grad_norm": ("1", 1.0),
+        "gamma": ("0.8", 0.8),
+        "gae_lambda": ("0.9", 0.9),
+        "ent_coef": ("0.01", 0.01),
+        "seed": ("7", 7),
+        "device": ("cpu", "cpu"),
+        "threads": ("2", 2),
+        "save_every": ("3", 3),
+        "snapshot_every": ("4", 4),
+        "val_max_tracklets": ("5", 5),
+    }
+    assert set(given) == set(fields)
+    argv = []
+    for dest, (text, _) in given.items():
+        argv += ["--" + dest.replace("_", "-"), text]
+    cfg = build_config(parser.parse_args(argv))
+    for dest, (_, expected) in given.items():
+        value = getattr(cfg, dest)
+        assert value == expected and type(value) is type(expected), dest

@@ -53,6 +53,7 @@ __all__ = [
     "load",
     "load_file",
     "make",
+    "read_safetensors",
     "register",
     "save",
     "size_config",
@@ -288,15 +289,21 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
         keys = ("format", "version", "tracker", "config", "env_options")
         meta = {k: blob[k] for k in keys if k in blob}
         return meta, blob["state_dict"]
-    try:
-        from safetensors import safe_open
+    return read_safetensors(path, "tracker checkpoint")
 
+
+def read_safetensors(path: str | Path, what: str) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
+    """-> (metadata, tensors) of a safetensors file (no unpickling); a file that cannot be read
+    is a ``ValueError`` naming ``what`` it should be and the path."""
+    from safetensors import safe_open
+
+    try:
         with safe_open(str(path), framework="pt", device="cpu") as f:
             meta = dict(f.metadata() or {})
             state = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open API
     except Exception as exc:
         raise ValueError(
-            f"cannot read tracker checkpoint {path}: corrupted or not a "
+            f"cannot read {what} {path}: corrupted or not a "
             f"safetensors file ({type(exc).__name__}: {exc})"
         ) from exc
     return meta, state

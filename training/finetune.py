@@ -888,10 +888,8 @@ class ResidualTracker:
     @classmethod
     def load(cls, path: str | Path) -> ResidualTracker:
         """From ``residual.safetensors`` or a run directory holding it (no unpickling)."""
-        from safetensors import safe_open
-
         import trackers
-        from trackers.registry import env_options_from_metadata
+        from trackers.registry import env_options_from_metadata, read_safetensors
 
         path = Path(path)
         if path.is_dir():
@@ -909,15 +907,7 @@ class ResidualTracker:
             )
         if not path.is_file():
             raise FileNotFoundError(f"no residual checkpoint at {path}")
-        try:
-            with safe_open(str(path), framework="pt", device="cpu") as f:
-                meta = dict(f.metadata() or {})
-                state = {k: f.get_tensor(k) for k in f.keys()}  # noqa: SIM118 - safe_open API
-        except Exception as exc:
-            raise ValueError(
-                f"cannot read residual checkpoint {path}: not a safetensors file "
-                f"({type(exc).__name__}: {exc})"
-            ) from exc
+        meta, state = read_safetensors(path, "residual checkpoint")
         if meta.get("format") != RESIDUAL_FORMAT:
             raise ValueError(
                 f"{path} is not a pointtrack residual checkpoint (format={meta.get('format')!r})"

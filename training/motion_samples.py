@@ -40,12 +40,11 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
 
 from envs.geometry import box_to_world, boxes_in_frame, offset_between, points_in_box, world_to_box
 from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE, SEARCH_SIZE, resample_into
 from trackers.m2track import box_cloud
-from training.samples import crop_near
+from training.samples import FrameCandidateSamples, crop_near
 
 __all__ = ["BATCH_KEYS", "TARGET_KEYS", "MotionSamples", "augment_frame"]
 
@@ -114,7 +113,7 @@ def _box4(box: np.ndarray) -> np.ndarray:
     return np.array([box[0], box[1], box[2], box[6]], dtype=np.float32)
 
 
-class MotionSamples(Dataset):
+class MotionSamples(FrameCandidateSamples):
     """A ``Dataset`` of M2-Track training samples (see the module docstring).
 
     Args:
@@ -137,34 +136,12 @@ class MotionSamples(Dataset):
         augment: bool = True,
         search_size: int = SEARCH_SIZE,
     ) -> None:
-        self.tracklets = [tr for tr in tracklets if len(tr) >= 2]
-        if not self.tracklets:
-            raise ValueError("no tracklets with at least 2 frames to build training samples from")
-        if candidates_per_frame < 1:
-            raise ValueError(f"candidates_per_frame must be >= 1, got {candidates_per_frame}")
+        self._set_tracklets(tracklets, candidates_per_frame, seed)
         if search_size < 1:
             raise ValueError(f"search_size must be >= 1, got {search_size}")
-        self.candidates = int(candidates_per_frame)
-        self.seed = int(seed)
         self.augment = bool(augment)
         self.search_size = int(search_size)
-        self.epoch = 0
-        frames = np.array([len(tr) - 1 for tr in self.tracklets], dtype=np.int64)
-        self._starts = np.concatenate([[0], np.cumsum(frames)])
-
-    def __len__(self) -> int:
-        return int(self._starts[-1]) * self.candidates
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
-    def locate(self, index: int) -> tuple[int, int, int]:
-        """``index`` -> ``(tracklet position, frame t >= 1, candidate)``."""
-        if not 0 <= index < len(self):
-            raise IndexError(f"sample index {index} out of range [0, {len(self)})")
-        item, cand = divmod(int(index), self.candidates)
-        k = int(np.searchsorted(self._starts, item, side="right") - 1)
-        return k, item - int(self._starts[k]) + 1, cand
+        self._index_frames(1)
 
     def describe(self, index: int) -> str:
         k, t, c = self.locate(index)

@@ -121,7 +121,47 @@ def _crop_stretched(
     return crop_near(points, crop_box, scale, offset_m)
 
 
-class TrackingSamples(Dataset):
+class FrameCandidateSamples(Dataset):
+    """Index arithmetic shared by the sample sets: sample ``i`` is candidate ``i % candidates``
+    of frame ``t`` of one tracklet, frames counted from ``first_t`` (set by
+    :meth:`_index_frames`); ``set_epoch`` changes every sample's random draws."""
+
+    tracklets: list
+    candidates: int
+    epoch: int
+
+    def _set_tracklets(self, tracklets: Sequence, candidates_per_frame: int, seed: int) -> None:
+        """Keep the tracklets of >= 2 frames; check and set the candidates, seed and epoch."""
+        self.tracklets = [tr for tr in tracklets if len(tr) >= 2]
+        if not self.tracklets:
+            raise ValueError("no tracklets with at least 2 frames to build training samples from")
+        if candidates_per_frame < 1:
+            raise ValueError(f"candidates_per_frame must be >= 1, got {candidates_per_frame}")
+        self.candidates = int(candidates_per_frame)
+        self.seed = int(seed)
+        self.epoch = 0
+
+    def _index_frames(self, first_t: int) -> None:
+        frames = np.array([len(tr) - first_t for tr in self.tracklets], dtype=np.int64)
+        self._first_t = first_t
+        self._starts = np.concatenate([[0], np.cumsum(frames)])
+
+    def __len__(self) -> int:
+        return int(self._starts[-1]) * self.candidates
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def locate(self, index: int) -> tuple[int, int, int]:
+        """``index`` -> ``(tracklet position, frame t >= first_t, candidate)``."""
+        if not 0 <= index < len(self):
+            raise IndexError(f"sample index {index} out of range [0, {len(self)})")
+        item, cand = divmod(int(index), self.candidates)
+        k = int(np.searchsorted(self._starts, item, side="right") - 1)
+        return k, item - int(self._starts[k]) + self._first_t, cand
+
+
+class TrackingSamples(FrameCandidateSamples):
     """A ``torch.utils.data.Dataset`` of supervised tracking samples (see the module docstring).
 
     Args:
@@ -165,11 +205,7 @@ class TrackingSamples(Dataset):
         frame0_samples: bool = False,
         limit_box: bool = False,
     ) -> None:
-        self.tracklets = [tr for tr in tracklets if len(tr) >= 2]
-        if not self.tracklets:
-            raise ValueError("no tracklets with at least 2 frames to build training samples from")
-        if candidates_per_frame < 1:
-            raise ValueError("candidates_per_frame must be >= 1")
+        self._set_tracklets(tracklets, candidates_per_frame, seed)
         if not 0.0 <= size_jitter < 1.0:
             raise ValueError(f"size_jitter must be in [0, 1), got {size_jitter}")
         if min_crop_points < 0:
@@ -180,9 +216,6 @@ class TrackingSamples(Dataset):
                 f"search_enlargement must be (scale > 0, offset_m >= 0), got {search_enlargement}"
             )
         self.size_jitter = float(size_jitter)
-        self.candidates = candidates_per_frame
-        self.seed = int(seed)
-        self.epoch = 0
         self.template_size = template_size
         self.search_size = search_size
         self.search_scale, self.search_offset_m = scale, offset_m
@@ -191,25 +224,7 @@ class TrackingSamples(Dataset):
         self.template_union = bool(template_union)
         self.frame0_samples = bool(frame0_samples)
         self.limit_box = bool(limit_box)
-        first = 0 if frame0_samples else 1
-        frames = np.array([len(tr) - first for tr in self.tracklets], dtype=np.int64)
-        self._first_t = first
-        self._starts = np.concatenate([[0], np.cumsum(frames)])
-
-    def __len__(self) -> int:
-        return int(self._starts[-1]) * self.candidates
-
-    def set_epoch(self, epoch: int) -> None:
-        self.epoch = int(epoch)
-
-    def locate(self, index: int) -> tuple[int, int, int]:
-        """``index`` -> ``(tracklet position, frame t, candidate)`` (``t >= 1``, or ``t >= 0``
-        with ``frame0_samples``)."""
-        if not 0 <= index < len(self):
-            raise IndexError(f"sample index {index} out of range [0, {len(self)})")
-        item, cand = divmod(int(index), self.candidates)
-        k = int(np.searchsorted(self._starts, item, side="right") - 1)
-        return k, item - int(self._starts[k]) + self._first_t, cand
+        self._index_frames(0 if frame0_samples else 1)
 
     def describe(self, index: int) -> str:
         k, t, c = self.locate(index)

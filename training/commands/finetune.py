@@ -29,141 +29,63 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d = FinetuneConfig()
     parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     add = parser.add_argument
-    add(
-        "--tracker",
-        default=d.tracker,
-        help="a shipped checkpoint name or a tracker checkpoint file",
-    )
-    add(
-        "--algo",
-        default=d.algo,
+
+    def config_flag(name: str, help: str, **kwargs) -> None:
+        """``--name`` sets the config field ``name`` (dashes for underscores); its default,
+        and the type of a number, come from :class:`FinetuneConfig`."""
+        dest = name.replace("-", "_")
+        default = getattr(d, dest)
+        if isinstance(default, (int, float)):
+            kwargs["type"] = type(default)
+        add(f"--{name}", dest=dest, default=default, help=help, **kwargs)
+
+    config_flag("tracker", "a shipped checkpoint name or a tracker checkpoint file")
+    config_flag(
+        "algo",
+        "ppo: train the tracker as the policy; residual: a residual MLP on the frozen one",
         choices=ALGOS,
-        help="ppo: train the tracker as the policy; residual: a residual MLP on the frozen one",
     )
-    add("--setting", default=d.setting, help="its observed categories are trained on")
-    add("--preset", default=d.preset, help="synthetic world preset (tiny, small, default)")
-    add("--sensor", default=d.sensor, help="synthetic LiDAR profile")
-    add(
-        "--world-seed",
-        dest="world_seed",
-        type=int,
-        default=d.world_seed,
-        help="synthetic world seed (its train split is used)",
-    )
-    add(
-        "--data-root",
-        dest="data_root",
-        default=None,
-        help="a KITTI-layout root instead of a synthetic world",
-    )
-    add("--reward", default=d.reward, help="the env's reward")
-    add(
-        "--clip-length",
-        dest="clip_length",
-        type=int,
-        default=d.clip_length,
-        help="steps per training episode (TimeLimit; 0: whole tracklets)",
-    )
-    add("--timesteps", type=int, default=d.timesteps, help="total env steps (all sub-envs)")
-    add(
-        "--num-envs",
-        dest="num_envs",
-        type=int,
-        default=d.num_envs,
-        help="sub-envs stepped together (one batched tracker forward per step)",
-    )
-    add(
-        "--n-steps",
-        dest="n_steps",
-        type=int,
-        default=d.n_steps,
-        help="steps per sub-env between PPO updates",
-    )
-    add("--batch-size", dest="batch_size", type=int, default=d.batch_size, help="PPO minibatch")
-    add("--n-epochs", dest="n_epochs", type=int, default=d.n_epochs, help="PPO epochs per update")
-    add("--lr", type=float, default=d.lr, help="learning rate of the value head and log-std")
-    add(
-        "--tracker-lr",
-        dest="tracker_lr",
-        type=float,
-        default=d.tracker_lr,
-        help="learning rate of the tracker's trained parts",
-    )
-    add(
-        "--train-parts",
-        dest="train_parts",
-        default=d.train_parts,
-        choices=TRAIN_PARTS,
-        help="which tracker parts train",
-    )
-    add(
-        "--action-mode",
-        dest="action_mode",
-        default=d.action_mode,
+    config_flag("setting", "its observed categories are trained on")
+    config_flag("preset", "synthetic world preset (tiny, small, default)")
+    config_flag("sensor", "synthetic LiDAR profile")
+    config_flag("world-seed", "synthetic world seed (its train split is used)")
+    config_flag("data-root", "a KITTI-layout root instead of a synthetic world")
+    config_flag("reward", "the env's reward")
+    config_flag("clip-length", "steps per training episode (TimeLimit; 0: whole tracklets)")
+    config_flag("timesteps", "total env steps (all sub-envs)")
+    config_flag("num-envs", "sub-envs stepped together (one batched tracker forward per step)")
+    config_flag("n-steps", "steps per sub-env between PPO updates")
+    config_flag("batch-size", "PPO minibatch")
+    config_flag("n-epochs", "PPO epochs per update")
+    config_flag("lr", "learning rate of the value head and log-std")
+    config_flag("tracker-lr", "learning rate of the tracker's trained parts")
+    config_flag("train-parts", "which tracker parts train", choices=TRAIN_PARTS)
+    config_flag(
+        "action-mode",
+        "policy mean: the best proposal, or the score-weighted mean of the proposals",
         choices=ACTION_MODES,
-        help="policy mean: the best proposal, or the score-weighted mean of the proposals",
     )
-    add(
-        "--critic",
-        default=d.critic,
+    config_flag(
+        "critic",
+        "value head on the tracker's pooled fused features, or a separate small PointNet",
         choices=CRITICS,
-        help="value head on the tracker's pooled fused features, or a separate small PointNet",
     )
-    add(
-        "--log-std-init",
-        dest="log_std_init",
-        type=float,
-        default=d.log_std_init,
-        help="initial log standard deviation (normalised action units)",
-    )
-    add(
-        "--warmup-rollouts",
-        dest="warmup_rollouts",
-        type=int,
-        default=d.warmup_rollouts,
-        help="first updates train the critic only (actor frozen)",
-    )
-    add(
-        "--target-kl",
-        dest="target_kl",
-        type=float,
-        default=d.target_kl,
-        help="stop an update's epochs when approx_kl exceeds 1.5x this",
-    )
-    add("--clip-range", dest="clip_range", type=float, default=d.clip_range, help="PPO ratio clip")
-    add(
-        "--max-grad-norm",
-        dest="max_grad_norm",
-        type=float,
-        default=d.max_grad_norm,
-        help="gradient clipping (global norm)",
-    )
-    add("--gamma", type=float, default=d.gamma, help="discount")
-    add("--gae-lambda", dest="gae_lambda", type=float, default=d.gae_lambda, help="GAE lambda")
-    add("--ent-coef", dest="ent_coef", type=float, default=d.ent_coef, help="entropy bonus")
-    add("--seed", type=int, default=d.seed, help="seed of PPO and the episode draws")
-    add("--device", default=d.device, help="cpu or cuda[:N]")
-    add("--threads", type=int, default=d.threads, help="torch.set_num_threads")
-    add(
-        "--save-every",
-        dest="save_every",
-        type=int,
-        default=d.save_every,
-        help="updates between resume checkpoints (OUT/state.safetensors)",
-    )
-    add(
-        "--snapshot-every",
-        dest="snapshot_every",
-        type=int,
-        default=d.snapshot_every,
-        help="updates between tracker snapshots in OUT/snapshots (0: none)",
-    )
-    add(
-        "--val-max-tracklets",
-        dest="val_max_tracklets",
-        type=int,
-        default=d.val_max_tracklets,
-        help="quick val check of base vs fine-tuned on this many tracklets (must be >= 1)",
+    config_flag("log-std-init", "initial log standard deviation (normalised action units)")
+    config_flag("warmup-rollouts", "first updates train the critic only (actor frozen)")
+    config_flag("target-kl", "stop an update's epochs when approx_kl exceeds 1.5x this")
+    config_flag("clip-range", "PPO ratio clip")
+    config_flag("max-grad-norm", "gradient clipping (global norm)")
+    config_flag("gamma", "discount")
+    config_flag("gae-lambda", "GAE lambda")
+    config_flag("ent-coef", "entropy bonus")
+    config_flag("seed", "seed of PPO and the episode draws")
+    config_flag("device", "cpu or cuda[:N]")
+    config_flag("threads", "torch.set_num_threads")
+    config_flag("save-every", "updates between resume checkpoints (OUT/state.safetensors)")
+    config_flag("snapshot-every", "updates between tracker snapshots in OUT/snapshots (0: none)")
+    config_flag(
+        "val-max-tracklets",
+        "quick val check of base vs fine-tuned on this many tracklets (must be >= 1)",
     )
     add("--no-val", action="store_true", help="skip the quick val check")
     add("--out", default="runs/finetune", help="run directory")
