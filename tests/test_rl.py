@@ -246,3 +246,71 @@ def test_the_docs_example_runs(tmp_path, monkeypatch):
     exec(compile(code, "docs/rl.md", "exec"), {})
     tuned = trackers.load(tmp_path / "p2b-rl.safetensors")
     assert tuned.name == "p2b"
+
+
+# ---------------------------------------------------------------- M2-Track as the policy
+
+M2_KEYS = ("template", "search", "size", "motion", "previous_search")
+
+
+def m2_ppo(data, **kwargs) -> PPO:
+    env = TrackingEnv(data, sampling="random", observation_keys=M2_KEYS)
+    defaults = {"n_steps": 16, "batch_size": 16, "n_epochs": 1, "seed": 0, "device": "cpu"}
+    policy_kwargs = {"tracker": "m2track-kitti1-u", **kwargs.pop("policy_kwargs", {})}
+    return PPO(
+        TrackerPolicy,
+        gym.wrappers.RescaleAction(env, -ONE, ONE),
+        policy_kwargs=policy_kwargs,
+        **{**defaults, **kwargs},
+    )
+
+
+def m2_observations(tracker, data, n: int = 6) -> list[dict[str, np.ndarray]]:
+    env, out = TrackingEnv(data, observation_keys=M2_KEYS), []
+    for i in range(2):
+        obs, _ = env.reset(seed=0, options={"tracklet": i})
+        for _ in range(n // 2):
+            out.append(obs)
+            obs, *_ = env.step(tracker.act(obs))
+    return out
+
+
+def test_m2track_policy_starts_as_the_tracker(data):
+    """M2-Track serves as the actor too: its final box is the mean, before any update equal to
+    the rescaled ``act`` (single and batched), and ``"head"`` trains its four heads."""
+    base = trackers.load("m2track-kitti1-u")
+    model = m2_ppo(data)
+    obs = m2_observations(base, data)
+    for o in obs:
+        action, _ = model.predict(o, deterministic=True)
+        np.testing.assert_allclose(action, base.act(o) / base.max_action, atol=1e-5)
+    batched, _ = model.predict(stack(obs), deterministic=True)
+    np.testing.assert_allclose(batched, base.act(stack(obs)) / base.max_action, atol=1e-5)
+    policy = model.policy
+    heads = ("motion_head", "state_head", "prev_head", "box_head")
+    expected = {id(p) for h in heads for p in getattr(policy.tracker, h).parameters()}
+    assert {id(p) for p in policy.trainable_tracker_parameters} == expected
+
+
+def test_m2track_gradient_reaches_heads_through_the_frozen_second_stage(data):
+    """The second PointNet (frozen under ``"head"``) sits between trained heads: it keeps its
+    graph, so the first-stage box head gets the gradient that flows through it. The frozen
+    stages before the first trained one run without a graph."""
+    policy = m2_ppo(data).policy
+    obs = {k: torch.as_tensor(v) for k, v in stack(m2_observations(policy.tracker, data)).items()}
+    assert policy.tracker.seg.forward.__func__.__name__ == "_no_grad_forward"
+    assert policy.tracker.motion_net.forward.__func__.__name__ == "_no_grad_forward"
+    assert "forward" not in vars(policy.tracker.box_net)  # its class's forward, with a graph
+    mean, value = policy.mean_and_value(obs)
+    mean.sum().backward()
+    for head in ("prev_head", "box_head"):
+        grads = [p.grad for p in getattr(policy.tracker, head).parameters()]
+        assert any(g is not None and g.abs().sum() > 0 for g in grads), head
+    assert value.shape == (len(mean),)
+
+
+def test_m2track_policy_refuses_an_env_without_previous_search_and_fusion_parts(data):
+    with pytest.raises(ValueError, match=r"reads the observation key\(s\) \['previous_search'\]"):
+        ppo(data, "m2track-kitti1-u")
+    with pytest.raises(ValueError, match=r"m2track.*no such part.*\['head', 'all'\]"):
+        m2_ppo(data, policy_kwargs={"train_parts": "fusion+head"})

@@ -197,6 +197,11 @@ class Tracker(nn.Module):
     sizes: ClassVar[dict[str, dict[str, Any]]] = {"default": {}}
     #: the batch's point clouds ``(B, N, 3)``, checked by :meth:`forward`; the first gives ``B``
     point_keys: ClassVar[tuple[str, ...]] = ("template", "search")
+    #: the env's opt-in observation keys this tracker reads (``TrackingEnv(observation_keys=)``)
+    observation_keys: ClassVar[tuple[str, ...]] = ()
+    #: RL fine-tuning's ``train_parts`` (:mod:`training.rl`) -> the child modules each trains;
+    #: ``"all"`` (every child) is implied
+    train_parts: ClassVar[dict[str, tuple[str, ...]]] = {}
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__()
@@ -297,19 +302,42 @@ class Tracker(nn.Module):
         finally:
             self.train(was_training)
 
+    def prepare(self, obs: Any) -> tuple[dict[str, torch.Tensor], bool]:
+        """One observation or a batch (arrays or tensors) -> (the :meth:`forward` batch on this
+        tracker's device, ``single``); errors name the key and the expected shape."""
+        return prepare_observation(obs, self.device)
+
+    def best_action(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The best-scored proposal ``(B, 4)`` (differentiable in the proposals)."""
+        best = outputs["scores"].argmax(dim=1)
+        return outputs["proposals"][torch.arange(len(best), device=best.device), best]
+
+    def empty_observations(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """``(B,)`` True where the observation holds nothing to act on (an all-zero template or
+        search): the tracker does not move there."""
+        return (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(1)
+
+    def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """One feature vector per sample ``(B, summary_channels)`` for heads that read the
+        tracker's state (the RL critic): :meth:`features` max- and mean-pooled over the seeds."""
+        z = self.features(outputs)
+        return torch.cat([z.amax(dim=1), z.mean(dim=1)], dim=-1)
+
+    @property
+    def summary_channels(self) -> int:  # pragma: no cover - abstract
+        """Width of :meth:`summary_features`."""
+        raise NotImplementedError
+
     @torch.no_grad()
     def act(self, obs: Any) -> np.ndarray:
-        """Best proposal as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``
+        """:meth:`best_action` as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``
         (an empty batch -> an empty ``(0, 4)`` array)."""
-        batch, single = prepare_observation(obs, self.device)
-        if batch["template"].shape[0] == 0:
+        batch, single = self.prepare(obs)
+        if batch[self.point_keys[0]].shape[0] == 0:
             return np.zeros((0, 4), dtype=np.float32)
         out = self.eval_forward(batch)
-        best = out["scores"].argmax(dim=1)
-        action = out["proposals"][torch.arange(len(best), device=best.device), best]
-        empty = (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(
-            1
-        )
+        action = self.best_action(out)
+        empty = self.empty_observations(batch)
         action = torch.where(empty[:, None], torch.zeros_like(action), action)
         action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
         a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
@@ -334,12 +362,21 @@ class MatchingTracker(Tracker):
     """
 
     config_class: ClassVar[type] = MatchingConfig
+    train_parts: ClassVar[dict[str, tuple[str, ...]]] = {
+        "head": ("head",),
+        "fusion+head": ("fusion", "head"),
+    }
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__(config, **overrides)
         self.backbone = Backbone(self.config.backbone)
         self.fusion, self.fused_channels = self.build_fusion(self.backbone.out_channels)
         self.head = VotingHead(self.fused_channels, self.config.head)
+
+    @property
+    def summary_channels(self) -> int:
+        """``2 D``: ``Z (B, M_S, D)`` max- and mean-pooled."""
+        return 2 * self.fused_channels
 
     def build_fusion(
         self, in_channels: int

@@ -353,6 +353,9 @@ class M2Track(Tracker):
     #: the observation keys ``act`` reads beyond the default contract
     observation_keys: ClassVar[tuple[str, ...]] = ("previous_search",)
     point_keys: ClassVar[tuple[str, ...]] = ("search", "previous_search")
+    train_parts: ClassVar[dict[str, tuple[str, ...]]] = {
+        "head": ("motion_head", "state_head", "prev_head", "box_head"),
+    }
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__(config, **overrides)
@@ -510,25 +513,29 @@ class M2Track(Tracker):
         total = sum(weights[k] * terms[k] for k in weights)
         return {"total": total, **terms}
 
-    @torch.no_grad()
-    def act(self, obs: Any) -> np.ndarray:
-        """The final box as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``; no
-        move when both frames' crops are empty (all zeros); clipped to ``self.max_action``."""
-        batch, single = prepare_motion_observation(obs, self.device)
-        if batch["search"].shape[0] == 0:
-            return np.zeros((0, 4), dtype=np.float32)
-        out = self.eval_forward(batch)
-        action = out["box"].clone()
-        action[:, 3] = torch.remainder(action[:, 3] + math.pi, 2 * math.pi) - math.pi
-        empty = (batch["search"] == 0).flatten(1).all(1) & (batch["previous_search"] == 0).flatten(
+    def prepare(self, obs: Any) -> tuple[dict[str, torch.Tensor], bool]:
+        """:func:`prepare_motion_observation` on this tracker's device."""
+        return prepare_motion_observation(obs, self.device)
+
+    def best_action(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The final box ``(B, 4)``, its yaw wrapped to ``[-pi, pi)`` (``act`` executes it)."""
+        box = outputs["box"]
+        yaw = torch.remainder(box[:, 3:] + math.pi, 2 * math.pi) - math.pi
+        return torch.cat([box[:, :3], yaw], dim=1)
+
+    def empty_observations(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """``(B,)`` True where both frames' crops are empty (all zeros)."""
+        return (batch["search"] == 0).flatten(1).all(1) & (batch["previous_search"] == 0).flatten(
             1
         ).all(1)
-        action = torch.where(empty[:, None], torch.zeros_like(action), action)
-        action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
-        a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
-        action = torch.maximum(torch.minimum(action, a_max), -a_max)
-        result = action.cpu().numpy().astype(np.float32)
-        return result[0] if single else result
+
+    def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        """The motion feature ``(B, D)``."""
+        return outputs["feature"]
+
+    @property
+    def summary_channels(self) -> int:
+        return int(self.config.hidden_channels[-1])
 
 
 def offset_points(points: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:

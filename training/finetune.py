@@ -39,7 +39,7 @@ import math
 import os
 import shutil
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -365,11 +365,15 @@ def _root(cfg: FinetuneConfig) -> str:
 
 
 def train_env_factory(
-    cfg: FinetuneConfig, env_options: Mapping[str, Any] | None = None
+    cfg: FinetuneConfig,
+    env_options: Mapping[str, Any] | None = None,
+    observation_keys: Sequence[str] | None = None,
 ) -> Callable[[], gym.Env]:
     """A factory of training envs on the train split, the setting's *observed* categories only
     (never the unseen ones), random tracklets; the sub-envs share the loaded data.
-    ``env_options``: the base tracker's ``env_options`` (its template mode, search region)."""
+    ``env_options``: the base tracker's ``env_options`` (its template mode, search region);
+    ``observation_keys``: the env's observation (``None``: its default; M2-Track needs
+    ``previous_search``, see ``training.evaluate.observation_keys_for``)."""
     from envs.data import KittiTracking
     from envs.tracking_env import TrackingEnv
 
@@ -384,6 +388,7 @@ def train_env_factory(
         reward=cfg.reward,
         start_frame="random",
         max_steps=cfg.clip_length if cfg.clip_length > 0 else None,
+        **({} if observation_keys is None else {"observation_keys": tuple(observation_keys)}),
         **(env_options or {}),
     )
     return base.clone
@@ -698,7 +703,12 @@ def finetune(
             None,
         )
     torch.set_num_threads(cfg.threads)
-    factory = make_env if make_env is not None else train_env_factory(cfg, base.env_options)
+    if make_env is not None:
+        factory = make_env
+    else:
+        from training.evaluate import observation_keys_for
+
+        factory = train_env_factory(cfg, base.env_options, observation_keys_for([base]))
     out.mkdir(parents=True, exist_ok=True)
     _atomic_write_text(out / "config.json", json.dumps(_identity(cfg), indent=2) + "\n")
     if cfg.algo == "residual":
@@ -733,14 +743,20 @@ def val_check(cfg: FinetuneConfig, base: Any, tuned: Any, out: Path) -> dict[str
     the protocol in docs/rl.md is what measures one); each with its ``env_options``."""
     from envs.data import KittiTracking
     from envs.tracking_env import TrackingEnv
-    from training.evaluate import env_options_for, evaluate
+    from training.evaluate import env_options_for, evaluate, observation_keys_for
 
     setting = _setting(cfg)
     data = KittiTracking(_root(cfg), "val", list(setting.observed))
     result: dict[str, Any] = {}
     for name, tracker in (("base", base), ("finetuned", tuned)):
         options = env_options_for([tracker])
-        env = TrackingEnv(data, setting=setting, categories=setting.observed, **options)
+        env = TrackingEnv(
+            data,
+            setting=setting,
+            categories=setting.observed,
+            observation_keys=observation_keys_for([tracker]),
+            **options,
+        )
         subset = list(range(min(cfg.val_max_tracklets, env.num_tracklets)))
         rep = evaluate(tracker, env, tracklets=subset, seed=0)
         result[name] = {k: rep["mean"][k] for k in ("success", "precision")}

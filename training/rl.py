@@ -5,8 +5,11 @@ mode) and the Gaussian policy's mean is the tracker's own action, rescaled to th
 ``RescaleAction(env, -1, 1)`` units ``a / max_action``; a learned, state-independent log-std
 (initial value ``log_std_init``, default -2: a standard deviation of 0.14 normalised units, i.e.
 0.68 m on x and y with the env's default ``max_action``) gives the exploration; a value head
-reads the tracker's fused search features ``Z (B, M, D)`` pooled over the seeds (max and mean),
-or, with ``critic="separate"``, a small PointNet of its own on the search points. ::
+reads the tracker's :meth:`~trackers.base.Tracker.summary_features` (P2B, BAT, GPT: the fused
+search features ``Z (B, M, D)`` max- and mean-pooled over the seeds; M2-Track: its motion
+feature), or, with ``critic="separate"``, a small PointNet of its own on the search points. Any
+learned tracker serves: the matching trackers and M2-Track (whose env must serve
+``previous_search``). ::
 
     import gymnasium as gym
     from stable_baselines3 import PPO
@@ -26,21 +29,26 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
   rollout and the update (PPO's ratio would not start at 1). :meth:`TrackerPolicy.train` keeps
   the tracker in eval mode whatever SB3's ``set_training_mode`` asks; an eval-mode forward is
   still differentiable.
-* **Action mean** ``action_mode="best"`` (default): the best-scored proposal, exactly what
-  ``tracker.act`` executes, so the policy starts as the pretrained tracker and PPO's gradient
-  reaches the box regression of that proposal (votes, clustering, offsets, and through them the
-  fusion and backbone features); the scores get no gradient (an argmax is piecewise constant).
-  ``"soft"``: the softmax(scores / ``temperature``)-weighted mean of the proposals, which also
-  trains the scores but starts *away* from ``tracker.act`` (it averages proposals on different
-  parts of the scene), so the first updates must first undo that shift.
-* **Which parts train** (``train_parts``): ``"head"`` (the proposal head), ``"fusion+head"``,
-  ``"all"``; the value head and the log-std always train. The tracker's parameters get the
-  learning rate times ``tracker_lr_scale`` (default 0.03: 1e-5 under PPO's 3e-4), the value head
-  and log-std the full rate, through per-group ``lr_scale`` in :class:`ScaledAdam` (SB3 sets one
-  learning rate for every group; the scale survives it).
-* Stages that do not train (the backbone, and the fusion for ``"head"``) run under
-  ``no_grad``: they precede the trained ones (``train_parts`` is always a suffix of backbone ->
-  fusion -> head), so no gradient is lost, and the update skips their autograd graph.
+* **Action mean** ``action_mode="best"`` (default): ``tracker.best_action`` (the best-scored
+  proposal; M2-Track's final box), exactly what ``tracker.act`` executes, so the policy starts
+  as the pretrained tracker and PPO's gradient reaches the box regression of that proposal
+  (votes, clustering, offsets, and through them the fusion and backbone features); the scores
+  get no gradient (an argmax is piecewise constant). ``"soft"``: the softmax(scores /
+  ``temperature``)-weighted mean of the proposals, which also trains the scores but starts
+  *away* from ``tracker.act`` (it averages proposals on different parts of the scene), so the
+  first updates must first undo that shift (M2-Track has one proposal: the same as ``"best"``
+  but for the yaw's wrapping).
+* **Which parts train** (``train_parts``): ``"head"`` (the proposal head; M2-Track's four
+  box and motion heads), ``"fusion+head"`` (matching trackers), ``"all"`` (the tracker's
+  ``train_parts`` class attribute names the modules); the value head and the log-std always
+  train. The tracker's parameters get the learning rate times ``tracker_lr_scale`` (default
+  0.03: 1e-5 under PPO's 3e-4), the value head and log-std the full rate, through per-group
+  ``lr_scale`` in :class:`ScaledAdam` (SB3 sets one learning rate for every group; the scale
+  survives it).
+* The stages that do not train *and* run before the first trained one (the backbone, and the
+  fusion for ``"head"``; M2-Track's segmentation and first PointNet) run under ``no_grad``: no
+  gradient can pass through them to a trained stage, and the update skips their autograd graph.
+  A frozen stage between trained ones (M2-Track's second PointNet) keeps its graph.
 * :meth:`TrackerPolicy.freeze_actor` stops the actor's gradients (tracker and log-std) for a
   critic warm-up.
 * Any SB3 actor-critic algorithm can drive it (PPO, A2C: ``optimizer_class`` is wrapped by
@@ -144,7 +152,7 @@ def resolve_tracker(tracker: Any) -> Tracker:
     if not isinstance(tracker, Tracker):
         name = getattr(tracker, "name", type(tracker).__name__)
         raise TypeError(
-            f"TrackerPolicy needs a learned tracker (P2B, BAT or GPT: a shipped "
+            f"TrackerPolicy needs a learned tracker (P2B, BAT, GPT or M2-Track: a shipped "
             f"name such as 'p2b-kitti1-u', a checkpoint path or a Tracker); "
             f"{name!r} has no parameters to train"
         )
@@ -191,8 +199,8 @@ class TrackerPolicy(ActorCriticPolicy):
             raise ValueError(f"tracker_lr_scale must be >= 0, got {tracker_lr_scale!r}")
         if not math.isfinite(log_std_init):
             raise ValueError(f"log_std_init must be finite, got {log_std_init!r}")
-        _check_spaces(observation_space, action_space)
         model = copy.deepcopy(resolve_tracker(tracker)).eval()
+        _check_spaces(observation_space, action_space, model)
         super().__init__(
             observation_space,
             action_space,
@@ -218,9 +226,10 @@ class TrackerPolicy(ActorCriticPolicy):
         self.register_buffer("max_action", torch.as_tensor(a_max))
         self.log_std = nn.Parameter(torch.full((4,), float(log_std_init)))
         if critic == "fused":
-            d = int(model.fused_channels)
             self.value_head: nn.Module = nn.Sequential(
-                nn.Linear(2 * d, critic_width), nn.Tanh(), nn.Linear(critic_width, 1)
+                nn.Linear(model.summary_channels, critic_width),
+                nn.Tanh(),
+                nn.Linear(critic_width, 1),
             )
         else:
             self.value_head = _SearchCritic(critic_width)
@@ -290,19 +299,16 @@ class TrackerPolicy(ActorCriticPolicy):
         """Action mean ``(B, 4)`` in ``[-1, 1]`` units and value ``(B,)`` (None unless
         ``value``) from one tracker forward. Raises ``FloatingPointError`` on a non-finite
         mean or value (broken weights must stop a run, not be trained on)."""
-        batch = {k: obs[k].to(self.max_action.device, torch.float32) for k in OBS_SHAPES}
+        batch, _ = self.tracker.prepare(obs)
         out = self.tracker(batch)
-        proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
         if self.action_mode == "best":
-            best = scores.argmax(dim=1)
-            action = proposals[torch.arange(len(best), device=best.device), best]
+            action = self.tracker.best_action(out)
         else:
+            proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
             weights = torch.softmax(scores / self.temperature, dim=1)
             action = (weights[..., None] * proposals).sum(dim=1)
-        # tracker.act's rules: no move for an empty template or search, clip to max_action
-        empty = (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(
-            1
-        )
+        # tracker.act's rules: no move on an empty observation, clip to max_action
+        empty = self.tracker.empty_observations(batch)
         action = torch.where(empty[:, None], torch.zeros_like(action), action)
         a_max = self.max_action.to(action.dtype)
         mean = torch.maximum(torch.minimum(action, a_max), -a_max) / a_max
@@ -311,8 +317,8 @@ class TrackerPolicy(ActorCriticPolicy):
         if not value:
             return mean, None
         if self.critic_kind == "fused":
-            z = out["Z"].detach()  # the critic's loss must not move the tracker's features
-            v = self.value_head(torch.cat([z.amax(dim=1), z.mean(dim=1)], dim=-1)).squeeze(-1)
+            # detached: the critic's loss must not move the tracker's features
+            v = self.value_head(self.tracker.summary_features(out).detach()).squeeze(-1)
         else:
             v = self.value_head(batch)
         if not torch.isfinite(v).all():
@@ -322,30 +328,30 @@ class TrackerPolicy(ActorCriticPolicy):
     # ------------------------------------------------------------------ parameter control
     def _select_trainable(self) -> list[nn.Parameter]:
         parts = {
-            "head": ("head",),
-            "fusion+head": ("fusion", "head"),
+            **self.tracker.train_parts,
             "all": tuple(name for name, _ in self.tracker.named_children()),
         }
+        if self.train_parts not in parts:
+            raise ValueError(
+                f"train_parts={self.train_parts!r}: tracker {self.tracker.name!r} has no such "
+                f"part; its parts: {list(parts)}"
+            )
         params: list[nn.Parameter] = []
         for name in parts[self.train_parts]:
-            module = getattr(self.tracker, name, None)
-            if module is None:
-                raise ValueError(
-                    f"train_parts={self.train_parts!r}: tracker "
-                    f"{self.tracker.name!r} has no {name!r} module"
-                )
-            params.extend(module.parameters())
+            params.extend(getattr(self.tracker, name).parameters())
         return params
 
     def _no_grad_frozen_stages(self) -> None:
-        """Run the tracker's stages that do not train (backbone, fusion for ``"head"``) under
-        ``no_grad``: they precede every trained stage, so no gradient is lost, the update's
-        forward skips their autograd graph (P2B's fusion then takes its fast eval path, the
-        one the rollout takes: identical log-probabilities in rollout and update)."""
+        """Run the tracker's frozen stages that come before its first trained one (children in
+        registration order, which is execution order) under ``no_grad``: no gradient could pass
+        through them to a trained stage, and the update's forward skips their autograd graph
+        (P2B's fusion then takes its fast eval path, the one the rollout takes: identical
+        log-probabilities in rollout and update)."""
         for _, child in self.tracker.named_children():
-            if not any(p.requires_grad for p in child.parameters()):
-                # a bound method (not a closure): a deepcopy of the tracker rebinds it
-                child.forward = types.MethodType(_no_grad_forward, child)
+            if any(p.requires_grad for p in child.parameters()):
+                break
+            # a bound method (not a closure): a deepcopy of the tracker rebinds it
+            child.forward = types.MethodType(_no_grad_forward, child)
 
     @property
     def trainable_tracker_parameters(self) -> list[nn.Parameter]:
@@ -374,7 +380,9 @@ def _check_choice(name: str, value: Any, valid: tuple[str, ...]) -> None:
         raise ValueError(f"{name} must be one of {list(valid)}, got {value!r}")
 
 
-def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -> None:
+def _check_spaces(
+    observation_space: spaces.Space, action_space: spaces.Space, tracker: Tracker
+) -> None:
     if not isinstance(observation_space, spaces.Dict) or any(
         k not in observation_space.spaces or observation_space[k].shape != s
         for k, s in OBS_SHAPES.items()
@@ -382,6 +390,13 @@ def _check_spaces(observation_space: spaces.Space, action_space: spaces.Space) -
         raise ValueError(
             f"TrackerPolicy needs the tracking env's Dict observation space with "
             f"{ {k: s for k, s in OBS_SHAPES.items()} }, got {observation_space}"
+        )
+    missing = [k for k in tracker.observation_keys if k not in observation_space.spaces]
+    if missing:
+        raise ValueError(
+            f"tracker {tracker.name!r} reads the observation key(s) {missing}, which the env "
+            f"does not serve: make it with TrackingEnv(..., observation_keys=(..., "
+            f"{', '.join(repr(k) for k in missing)}))"
         )
     if (
         not isinstance(action_space, spaces.Box)
