@@ -307,6 +307,10 @@ def test_m2track_gradient_reaches_heads_through_the_frozen_second_stage(data):
         grads = [p.grad for p in getattr(policy.tracker, head).parameters()]
         assert any(g is not None and g.abs().sum() > 0 for g in grads), head
     assert value.shape == (len(mean),)
+    separate = m2_ppo(data, policy_kwargs={"critic": "separate"}).policy
+    mean_s, value_s = separate.mean_and_value(obs)
+    torch.testing.assert_close(mean_s, mean)
+    assert value_s.shape == (len(mean),) and torch.isfinite(value_s).all()
 
 
 def test_m2track_policy_refuses_an_env_without_previous_search_and_fusion_parts(data):

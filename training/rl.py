@@ -128,6 +128,10 @@ class _NoFeatures(BaseFeaturesExtractor):
         raise RuntimeError("TrackerPolicy reads observations through its tracker")
 
 
+#: what the separate critic reads (every tracking env serves them)
+_CRITIC_KEYS = ("search", "size", "motion")
+
+
 class _SearchCritic(nn.Module):
     """A small PointNet value network: per-point MLP on ``search (B, N, 3)``, max-pool, then an
     MLP with ``size (B, 3)`` and ``motion (B, 4)`` -> ``(B,)``."""
@@ -320,7 +324,8 @@ class TrackerPolicy(ActorCriticPolicy):
             # detached: the critic's loss must not move the tracker's features
             v = self.value_head(self.tracker.summary_features(out).detach()).squeeze(-1)
         else:
-            v = self.value_head(batch)
+            device = self.max_action.device
+            v = self.value_head({k: obs[k].to(device, torch.float32) for k in _CRITIC_KEYS})
         if not torch.isfinite(v).all():
             raise FloatingPointError("TrackerPolicy: the value head's output is NaN or inf")
         return mean, v
