@@ -20,7 +20,10 @@
 * ``act(obs) -> np.ndarray``: one observation -> ``(4,)``, a batch -> ``(B, 4)`` (``(0, 4)`` for
   an empty batch); the best-scored proposal, clipped to ``self.max_action`` (default the env's
   ``a_max = (5, 5, 3, pi)``); no move for an all-zero (empty) template or search; eval-mode
-  ``no_grad`` forwards (the module's train/eval mode is restored afterwards).
+  ``no_grad`` forwards (the module's train/eval mode is restored afterwards). It is built from
+  hooks a tracker of another kind overrides (M2-Track does): :meth:`Tracker.prepare`,
+  :meth:`Tracker.best_action`, :meth:`Tracker.empty_observations`; RL fine-tuning
+  (:mod:`training.rl`) also reads :meth:`Tracker.summary_features` and ``train_parts``.
 
 :class:`MatchingTracker` outputs ``Z (B, M_S, D)`` the fused search features, ``proposals``,
 ``scores``, ``votes (B, M_S, 3)``, ``vote_features``, ``seed_logits (B, M_S)``, ``seed_xyz``,
