@@ -28,9 +28,9 @@ def rescaled(data, **kwargs) -> gym.Env:
     return gym.wrappers.RescaleAction(TrackingEnv(data, sampling="random", **kwargs), -ONE, ONE)
 
 
-def observations(tracker, data, n: int = 6) -> list[dict[str, np.ndarray]]:
+def observations(tracker, data, n: int = 6, **env_kwargs) -> list[dict[str, np.ndarray]]:
     """Observations along the tracker's own closed loop over two tracklets."""
-    env, out = TrackingEnv(data), []
+    env, out = TrackingEnv(data, **env_kwargs), []
     for i in range(2):
         obs, _ = env.reset(seed=0, options={"tracklet": i})
         for _ in range(n // 2):
@@ -41,6 +41,15 @@ def observations(tracker, data, n: int = 6) -> list[dict[str, np.ndarray]]:
 
 def stack(obs: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
     return {k: np.stack([o[k] for o in obs]) for k in obs[0]}
+
+
+def assert_predict_equals_act(model: PPO, base, obs: list[dict[str, np.ndarray]]) -> None:
+    """Deterministic predictions, one at a time and batched, equal ``act / max_action``."""
+    for o in obs:
+        action, _ = model.predict(o, deterministic=True)
+        np.testing.assert_allclose(action, base.act(o) / base.max_action, atol=1e-5)
+    batched, _ = model.predict(stack(obs), deterministic=True)
+    np.testing.assert_allclose(batched, base.act(stack(obs)) / base.max_action, atol=1e-5)
 
 
 def ppo(data, tracker, **kwargs) -> PPO:
@@ -54,11 +63,7 @@ def test_predict_equals_rescaled_tracker_act_at_init(data, name):
     base = trackers.load(name)
     model = ppo(data, name)
     obs = observations(base, data)
-    for o in obs:
-        action, _ = model.predict(o, deterministic=True)
-        np.testing.assert_allclose(action, base.act(o) / base.max_action, atol=1e-5)
-    batched, _ = model.predict(stack(obs), deterministic=True)
-    np.testing.assert_allclose(batched, base.act(stack(obs)) / base.max_action, atol=1e-5)
+    assert_predict_equals_act(model, base, obs)
 
 
 def test_batched_and_single_predictions_agree(data):
@@ -265,14 +270,8 @@ def m2_ppo(data, **kwargs) -> PPO:
     )
 
 
-def m2_observations(tracker, data, n: int = 6) -> list[dict[str, np.ndarray]]:
-    env, out = TrackingEnv(data, observation_keys=M2_KEYS), []
-    for i in range(2):
-        obs, _ = env.reset(seed=0, options={"tracklet": i})
-        for _ in range(n // 2):
-            out.append(obs)
-            obs, *_ = env.step(tracker.act(obs))
-    return out
+def m2_observations(tracker, data) -> list[dict[str, np.ndarray]]:
+    return observations(tracker, data, observation_keys=M2_KEYS)
 
 
 def test_m2track_policy_starts_as_the_tracker(data):
@@ -281,11 +280,7 @@ def test_m2track_policy_starts_as_the_tracker(data):
     base = trackers.load("m2track-kitti1-u")
     model = m2_ppo(data)
     obs = m2_observations(base, data)
-    for o in obs:
-        action, _ = model.predict(o, deterministic=True)
-        np.testing.assert_allclose(action, base.act(o) / base.max_action, atol=1e-5)
-    batched, _ = model.predict(stack(obs), deterministic=True)
-    np.testing.assert_allclose(batched, base.act(stack(obs)) / base.max_action, atol=1e-5)
+    assert_predict_equals_act(model, base, obs)
     policy = model.policy
     heads = ("motion_head", "state_head", "prev_head", "box_head")
     expected = {id(p) for h in heads for p in getattr(policy.tracker, h).parameters()}
