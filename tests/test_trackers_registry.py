@@ -132,7 +132,8 @@ def test_available_lists_kinds_in_order():
         *shipped,
     ]
     matching = {f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"}
-    others = {"p2b-kitti1-drct", "p2b-kitti1-u-rl", "m2track-kitti1-u", "m2track-kitti1-w"}
+    others = {"p2b-kitti1-drct", "m2track-kitti1-u", "m2track-kitti1-w"}
+    others |= {"p2b-kitti1-u-rl", "gpt-kitti1-u-rl"}
     assert set(shipped) == matching | others
     for name in ("p2b", "bat", "gpt"):  # the matching trackers (m2track: tests/test_m2track.py)
         assert trackers.size_config(name, "default") == {}
