@@ -322,9 +322,10 @@ class Tracker(nn.Module):
 
     def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """One feature vector per sample ``(B, summary_channels)`` for heads that read the
-        tracker's state (the RL critic): :meth:`features` max- and mean-pooled over the seeds."""
+        tracker's state (the RL critic): :meth:`features` ``(B, M, D)`` max- and mean-pooled
+        over the seeds, or ``(B, D)`` features as they are."""
         z = self.features(outputs)
-        return torch.cat([z.amax(dim=1), z.mean(dim=1)], dim=-1)
+        return z if z.dim() == 2 else torch.cat([z.amax(dim=1), z.mean(dim=1)], dim=-1)
 
     @property
     def summary_channels(self) -> int:  # pragma: no cover - abstract

@@ -529,12 +529,9 @@ class M2Track(Tracker):
             1
         ).all(1)
 
-    def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """The motion feature ``(B, D)``."""
-        return outputs["feature"]
-
     @property
     def summary_channels(self) -> int:
+        """``D`` of the motion feature (:meth:`features`, the critic's summary as it is)."""
         return int(self.config.hidden_channels[-1])
 
 
