@@ -511,18 +511,8 @@ class TrackingEnv(gym.Env):
                 f"step() called after the episode of tracklet {self._tracklet.tracklet_id} "
                 f"{self._done}; call env.reset() to start the next one"
             )
-        a = np.asarray(action, dtype=np.float64)
-        if a.shape != (4,):
-            raise ValueError(f"action must have shape (4,) (dx, dy, dz, dyaw); got {a.shape}")
-        values = a.tolist()
-        if not all(map(math.isfinite, values)):
-            raise ValueError(f"action contains NaN or inf: {values} (dx, dy, dz, dyaw)")
-        clipped = _clip(values, self._max_action_list)
-
+        values, clipped, pred_box = self._decode_action(action)
         t = self._t
-        # the boxes as Python floats for the scalar math; arrays only where they are kept
-        pred_box = apply_offset_pair(self._ref.tolist(), clipped)
-        pred_box[3:6] = self._size_box  # the given box's size
         pred = np.array(pred_box)
         gt = self._tracklet.boxes[t]
         prev_pred = self._preds[-1]
@@ -545,6 +535,39 @@ class TrackingEnv(gym.Env):
         self._done = "terminated" if terminated else "truncated" if truncated else ""
         reward = self._reward(pred, gt, prev_pred, t - self._start_frame - 1, info)
         return obs, reward, terminated, truncated, info
+
+    def reward_for_action(self, action: Any) -> float:
+        """The reward ``step(action)`` would return now, without stepping (nothing changes).
+
+        For self-critical baselines (``training.rl.SelfCriticalReward``): the reward of the
+        policy's mean action at the same state. The reward's ``info`` has the prediction's
+        entries (``iou``, ``center_error``, ``pred_box``, ``gt_box``, ...) but not the next
+        observation's ``empty_*`` flags or the weather entries (no observation is made)."""
+        if self._tracklet is None or self._done:
+            raise RuntimeError(
+                "reward_for_action() needs a running episode (call reset(), and again after "
+                "the episode ends)"
+            )
+        values, clipped, pred_box = self._decode_action(action)
+        pred = np.array(pred_box)
+        gt = self._tracklet.boxes[self._t]
+        info = self._info(pred, gt, action_clipped=clipped != values)
+        return self._reward(pred, gt, self._preds[-1], self._t - self._start_frame - 1, info)
+
+    def _decode_action(self, action: Any) -> tuple[list[float], list[float], list[float]]:
+        """``(values, clipped, pred_box)`` of an action: its four numbers, them clipped to
+        ``max_action``, and the box ``(7,)`` (Python floats, for the scalar math) it makes from
+        the reference box, with the given box's size."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != (4,):
+            raise ValueError(f"action must have shape (4,) (dx, dy, dz, dyaw); got {a.shape}")
+        values = a.tolist()
+        if not all(map(math.isfinite, values)):
+            raise ValueError(f"action contains NaN or inf: {values} (dx, dy, dz, dyaw)")
+        clipped = _clip(values, self._max_action_list)
+        pred_box = apply_offset_pair(self._ref.tolist(), clipped)
+        pred_box[3:6] = self._size_box
+        return values, clipped, pred_box
 
     def render(self) -> np.ndarray | None:
         """``rgb_array``: a bird's-eye ``(H, W, 3)`` uint8 image of the current search region
@@ -623,7 +646,7 @@ class TrackingEnv(gym.Env):
     def _info(self, pred: np.ndarray, gt: np.ndarray, action_clipped: bool) -> dict[str, Any]:
         """The step info of the prediction ``pred`` for frame ``self._t`` (before the next
         observation adds its ``empty_*`` flags)."""
-        pred_box, gt_box = self._pred_box, gt.tolist()
+        pred_box, gt_box = pred.tolist(), gt.tolist()
         center_error = math.dist(pred_box[:3], gt_box[:3])
         tr = self._tracklet
         return {

@@ -224,6 +224,32 @@ def test_named_rewards_by_hand(straight, d):
     assert env.step(np.array([1.0, 0, 0, 0]))[1] == pytest.approx(0.4)
 
 
+@pytest.mark.parametrize("name", ["iou_3d", "neg_center_error", "iou_delta", "success"])
+def test_reward_for_action_is_the_step_reward_and_changes_nothing(toy, name):
+    """The self-critical baseline's query: for any action, the reward step(action) returns,
+    asked before the step; asking it leaves the episode byte-identical."""
+    actions = np.random.default_rng(5).uniform(-2.0, 2.0, size=(6, 4))
+    actions[:, 3] *= 0.2
+    queried, plain = TrackingEnv(toy, reward=name), TrackingEnv(toy, reward=name)
+    for env in (queried, plain):
+        env.reset(seed=0, options={"tracklet": 1, "start_frame": 2})
+    for a in actions:
+        asked = [queried.reward_for_action(b) for b in (a, 0.5 * a, a)]
+        out_q, out_p = queried.step(a), plain.step(a)
+        assert asked[0] == asked[2] == out_q[1] == out_p[1]
+        assert_obs_equal(out_q[0], out_p[0])
+        assert out_q[2:4] == out_p[2:4]
+        np.testing.assert_array_equal(out_q[4]["pred_box"], out_p[4]["pred_box"])
+        if out_q[2] or out_q[3]:
+            break
+    with pytest.raises(RuntimeError, match="running episode"):
+        TrackingEnv(toy).reward_for_action(np.zeros(4))
+    env = TrackingEnv(toy)
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="shape \\(4,\\)"):
+        env.reward_for_action(np.zeros(3))
+
+
 def test_reward_callable_receives_its_arguments(straight):
     calls = []
 

@@ -109,6 +109,22 @@ def test_out_dir_refusals_name_the_problem(tmp_path, data):
     assert log_steps(out) == [8]
 
 
+def test_self_critical_run_trains_and_needs_one_step_returns(tmp_path, data):
+    with pytest.raises(ft.FinetuneError, match="self_critical.*set gamma=0 \\(got gamma=0.9\\)"):
+        run(tiny_cfg(baseline="self_critical"), tmp_path / "bad", data)
+    with pytest.raises(ft.FinetuneError, match="baseline must be one of \\['critic'"):
+        run(tiny_cfg(baseline="greedy"), tmp_path / "bad", data)
+    out = tmp_path / "run"
+    result = run(tiny_cfg(baseline="self_critical", gamma=0.0), out, data)
+    assert result.timesteps == 32
+    tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
+    assert any(not torch.equal(v, base.state_dict()[k]) for k, v in tuned.state_dict().items())
+    # the logged episode reward is the env's own (IoU), not the baseline-subtracted one
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert any(r["ep_reward"] is not None for r in records)
+    assert all(r["ep_reward"] is None or r["ep_reward"] >= 0 for r in records)
+
+
 def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch):
     out = tmp_path / "run"
     original = ft._PPORun.after_update
@@ -412,12 +428,13 @@ def test_every_finetune_flag_reaches_the_config():
         "train_parts": ("all", "all"),
         "action_mode": ("soft", "soft"),
         "critic": ("separate", "separate"),
+        "baseline": ("self_critical", "self_critical"),
         "log_std_init": ("-3", -3.0),
         "warmup_rollouts": ("2", 2),
         "target_kl": ("0.05", 0.05),
         "clip_range": ("0.2", 0.2),
         "max_grad_norm": ("1", 1.0),
-        "gamma": ("0.8", 0.8),
+        "gamma": ("0", 0.0),
         "gae_lambda": ("0.9", 0.9),
         "ent_coef": ("0.01", 0.01),
         "seed": ("7", 7),

@@ -13,7 +13,7 @@ from stable_baselines3 import PPO
 
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
-from training.rl import ScaledAdam, TrackerPolicy
+from training.rl import ScaledAdam, SelfCriticalReward, TrackerPolicy
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 ONE = np.ones(4, dtype=np.float32)
@@ -232,6 +232,58 @@ def test_nan_weights_raise_instead_of_acting(data):
     obs = {k: torch.as_tensor(v) for k, v in stack(observations(base, data)).items()}
     with pytest.raises(FloatingPointError, match="NaN"), torch.no_grad():
         policy(obs)
+
+
+def self_critical_ppo(data, tracker, num_envs: int = 2) -> tuple[PPO, SelfCriticalReward]:
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    venv = SelfCriticalReward(DummyVecEnv([lambda: rescaled(data)] * num_envs))
+    model = PPO(
+        TrackerPolicy,
+        venv,
+        n_steps=8,
+        batch_size=16,
+        n_epochs=1,
+        gamma=0.0,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"tracker": tracker, "log_std_init": -1.0},
+    )
+    venv.policy = model.policy
+    return model, venv
+
+
+def test_self_critical_reward_subtracts_the_mean_actions_own_reward(data):
+    """Each reward is the sampled action's minus what the *mean* action would have earned at
+    the same state, the latter checked on a pickled copy of each sub-env stepped with it."""
+    import pickle
+
+    base = trackers.load("p2b-kitti1-u")
+    model, venv = self_critical_ppo(data, base)
+    policy, inner = model.policy, venv.venv
+    obs = venv.reset()
+    nonzero = 0
+    for _ in range(6):
+        with torch.no_grad():
+            actions, _, _ = policy({k: torch.as_tensor(v) for k, v in obs.items()})
+        mean = policy.last_mean.numpy() * base.max_action
+        twins = [pickle.loads(pickle.dumps(e.unwrapped)) for e in inner.envs]
+        expected_baseline = [twin.step(m)[1] for twin, m in zip(twins, mean, strict=True)]
+        obs, rewards, _, infos = venv.step(actions.numpy())
+        for i, info in enumerate(infos):
+            assert info["baseline_reward"] == pytest.approx(expected_baseline[i], abs=1e-12)
+            assert rewards[i] == pytest.approx(info["iou"] - expected_baseline[i], abs=1e-6)
+            nonzero += abs(rewards[i]) > 1e-6
+    assert nonzero  # the noise (std 0.37) moves the boxes: the advantages are not all 0
+    # the mean action itself has no advantage
+    with torch.no_grad():
+        policy({k: torch.as_tensor(v) for k, v in obs.items()})
+    _, rewards, _, _ = venv.step(policy.last_mean.numpy())
+    np.testing.assert_allclose(rewards, 0.0, atol=1e-6)
+    with pytest.raises(RuntimeError, match="policy's forward"):
+        venv.step(np.zeros((2, 4), np.float32))  # no forward since the last step
+    model.learn(16)  # PPO drives it end to end
+    assert np.isfinite(model.logger.name_to_value["train/loss"])
 
 
 def test_the_docs_example_runs(tmp_path, monkeypatch):

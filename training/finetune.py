@@ -64,6 +64,7 @@ __all__ = [
 ]
 
 ALGOS = ("ppo", "residual")
+BASELINES = ("critic", "self_critical")
 STATE_FORMAT = "pointtrack-finetune-state"
 RESIDUAL_FORMAT = "pointtrack-residual"
 FORMAT_VERSION = "1"
@@ -104,6 +105,7 @@ class FinetuneConfig:
     train_parts: str = "head"
     action_mode: str = "best"
     critic: str = "fused"
+    baseline: str = "critic"  # or "self_critical" (needs gamma=0): training.rl.SelfCriticalReward
     log_std_init: float = -2.0
     warmup_rollouts: int = 1
     target_kl: float | None = 0.02
@@ -130,6 +132,7 @@ class FinetuneConfig:
             ("train_parts", self.train_parts, TRAIN_PARTS),
             ("action_mode", self.action_mode, ACTION_MODES),
             ("critic", self.critic, CRITICS),
+            ("baseline", self.baseline, BASELINES),
             ("reward", self.reward, REWARDS),
         ):
             if value not in valid:
@@ -156,6 +159,11 @@ class FinetuneConfig:
         for name in ("gamma", "gae_lambda"):
             if not 0 <= getattr(self, name) <= 1:
                 errors.append(f"{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.baseline == "self_critical" and self.gamma != 0:
+            errors.append(
+                f"baseline 'self_critical' is unbiased for one-step returns only: set gamma=0 "
+                f"(got gamma={self.gamma})"
+            )
         if str(self.device).startswith("cuda") and not torch.cuda.is_available():
             errors.append(f"device {self.device!r}: CUDA is not available here (use cpu)")
         elif not str(self.device).startswith(("cpu", "cuda")):
@@ -253,7 +261,9 @@ def check_out_dir(
         if not state.is_file():
             raise FinetuneError(f"nothing to resume: {state} does not exist")
         meta = _read_meta(state)
-        saved, given = meta["identity"], _identity(cfg)
+        # a field added since the run was saved had its default then
+        saved = {**FinetuneConfig().to_dict(), **meta["identity"]}
+        given = _identity(cfg)
         diffs = [
             f"{k}: saved {saved.get(k)!r}, given {given.get(k)!r}"
             for k in sorted(set(saved) | set(given))
@@ -458,7 +468,7 @@ class _PPORun:
     ) -> None:
         from stable_baselines3 import PPO
 
-        from training.rl import TrackerPolicy
+        from training.rl import SelfCriticalReward, TrackerPolicy
 
         self.cfg, self.out, self.log = cfg, out, log
         self.progress = progress
@@ -467,6 +477,8 @@ class _PPORun:
         steps0 = int(resume_meta["timesteps"]) if resume_meta else 0
         self.rollout_steps = cfg.n_steps * cfg.num_envs
         self.env = make_vec_env(make_env, cfg.num_envs, cfg.clip_length)
+        if cfg.baseline == "self_critical":
+            self.env = SelfCriticalReward(self.env)
         self.model = PPO(
             TrackerPolicy,
             self.env,
@@ -493,6 +505,8 @@ class _PPORun:
             },
         )
         self.policy = self.model.policy
+        if isinstance(self.env, SelfCriticalReward):
+            self.env.policy = self.policy
         if state is not None:
             policy_sd, optim_sd, rng, _ = state
             self.policy.load_state_dict(policy_sd, strict=True)

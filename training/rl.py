@@ -70,6 +70,7 @@ from gymnasium import spaces
 from stable_baselines3.common.distributions import DiagGaussianDistribution
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from torch import nn
 
 from trackers.base import OBS_SHAPES, Tracker
@@ -79,6 +80,7 @@ __all__ = [
     "CRITICS",
     "TRAIN_PARTS",
     "ScaledAdam",
+    "SelfCriticalReward",
     "TrackerPolicy",
     "lr_scaled",
     "resolve_tracker",
@@ -244,6 +246,8 @@ class TrackerPolicy(ActorCriticPolicy):
             p.requires_grad_(True)
         self._no_grad_frozen_stages()
         self._actor_frozen = False
+        # the mean of the last forward, (B, 4) [-1, 1] units: SelfCriticalReward reads it
+        self.last_mean: torch.Tensor | None = None
         own = [*self.value_head.parameters(), self.log_std]
         self.optimizer = self.optimizer_class(
             [
@@ -278,6 +282,7 @@ class TrackerPolicy(ActorCriticPolicy):
         self, obs: Any, deterministic: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         mean, values = self.mean_and_value(obs)
+        self.last_mean = mean.detach()
         dist = self.action_dist.proba_distribution(mean, self.log_std)
         actions = dist.get_actions(deterministic=deterministic)
         return actions, values[:, None], dist.log_prob(actions)
@@ -373,6 +378,58 @@ class TrackerPolicy(ActorCriticPolicy):
     @property
     def actor_frozen(self) -> bool:
         return self._actor_frozen
+
+
+class SelfCriticalReward(VecEnvWrapper):
+    """Each sub-env's reward minus the reward of the policy's *mean* action at the same state:
+    ``r(s, a) - r(s, mu(s))``, the self-critical baseline of Rennie et al., "Self-critical
+    Sequence Training for Image Captioning" (CVPR 2017), here for one-step returns.
+
+    Why: with a small exploration noise the reward's variance between states (a lost target
+    against a tracked one) dwarfs its variance between the actions tried at one state, and a
+    learned critic that cannot predict a tracker's IoU from its points leaves that variance in
+    the advantage. The mean action's own reward is an exact per-state baseline (the env
+    computes it without stepping, :meth:`envs.tracking_env.TrackingEnv.reward_for_action`),
+    so the advantage keeps only the effect of the exploration. It is unbiased for one-step
+    returns only: use it with ``gamma=0`` (each step's reward is then its return; PPO's critic
+    learns a value near 0).
+
+    ``venv``: the ``RescaleAction(env, -1, 1)`` sub-envs of :class:`TrackerPolicy`; ``policy``
+    (settable later, as SB3 builds it after the env): the policy whose last forward chose the
+    actions (:attr:`TrackerPolicy.last_mean`). Each step's ``info["baseline_reward"]`` records
+    the baseline.
+    """
+
+    def __init__(self, venv: VecEnv, policy: TrackerPolicy | None = None) -> None:
+        super().__init__(venv)
+        self.policy = policy
+        self._baseline = np.zeros(self.num_envs)
+
+    def reset(self) -> Any:
+        return self.venv.reset()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        mean = None if self.policy is None else self.policy.last_mean
+        if mean is None or mean.shape != (self.num_envs, 4):
+            raise RuntimeError(
+                "SelfCriticalReward: step() needs the policy's forward on this step's "
+                "observations first (PPO's rollouts do that; set wrapper.policy = model.policy)"
+            )
+        self.policy.last_mean = None  # one baseline per forward
+        env_units = (mean * self.policy.max_action.to(mean.dtype)).cpu().numpy()
+        self._baseline = np.array(
+            [
+                self.venv.env_method("reward_for_action", env_units[i], indices=i)[0]
+                for i in range(self.num_envs)
+            ]
+        )
+        self.venv.step_async(actions)
+
+    def step_wait(self) -> Any:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        for info, baseline in zip(infos, self._baseline, strict=True):
+            info["baseline_reward"] = float(baseline)
+        return obs, (rewards - self._baseline).astype(rewards.dtype), dones, infos
 
 
 def _no_grad_forward(module: nn.Module, *args: Any, **kwargs: Any) -> Any:

@@ -23,7 +23,7 @@ import sys
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags (defaults: :class:`training.finetune.FinetuneConfig`)."""
-    from training.finetune import ALGOS, FinetuneConfig
+    from training.finetune import ALGOS, BASELINES, FinetuneConfig
     from training.rl import ACTION_MODES, CRITICS, TRAIN_PARTS
 
     d = FinetuneConfig()
@@ -69,6 +69,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "critic",
         "value head on the tracker's pooled fused features, or a separate small PointNet",
         choices=CRITICS,
+    )
+    config_flag(
+        "baseline",
+        "advantage baseline: the learned critic, or the reward of the policy's mean action at "
+        "the same state (self_critical; needs --gamma 0)",
+        choices=BASELINES,
     )
     config_flag("log-std-init", "initial log standard deviation (normalised action units)")
     config_flag("warmup-rollouts", "first updates train the critic only (actor frozen)")
