@@ -52,10 +52,12 @@ def assert_predict_equals_act(model: PPO, base, obs: list[dict[str, np.ndarray]]
     np.testing.assert_allclose(batched, base.act(stack(obs)) / base.max_action, atol=1e-5)
 
 
-def ppo(data, tracker, **kwargs) -> PPO:
+def ppo(data, tracker, env=None, **kwargs) -> PPO:
+    """PPO on ``env`` (default: one rescaled env of ``data``)."""
     policy_kwargs = {"tracker": tracker, **kwargs.pop("policy_kwargs", {})}
     defaults = {"n_steps": 16, "batch_size": 16, "n_epochs": 1, "seed": 0, "device": "cpu"}
-    return PPO(TrackerPolicy, rescaled(data), policy_kwargs=policy_kwargs, **{**defaults, **kwargs})
+    env = rescaled(data) if env is None else env
+    return PPO(TrackerPolicy, env, policy_kwargs=policy_kwargs, **{**defaults, **kwargs})
 
 
 @pytest.mark.parametrize("name", ["p2b-kitti1-u", "bat-kitti1-u", "gpt-kitti1-u"])
@@ -238,17 +240,7 @@ def self_critical_ppo(data, tracker, num_envs: int = 2) -> tuple[PPO, SelfCritic
     from stable_baselines3.common.vec_env import DummyVecEnv
 
     venv = SelfCriticalReward(DummyVecEnv([lambda: rescaled(data)] * num_envs))
-    model = PPO(
-        TrackerPolicy,
-        venv,
-        n_steps=8,
-        batch_size=16,
-        n_epochs=1,
-        gamma=0.0,
-        seed=0,
-        device="cpu",
-        policy_kwargs={"tracker": tracker, "log_std_init": -1.0},
-    )
+    model = ppo(data, tracker, venv, n_steps=8, gamma=0.0, policy_kwargs={"log_std_init": -1.0})
     venv.policy = model.policy
     return model, venv
 
