@@ -1,5 +1,6 @@
 """Shipped checkpoints: outputs bit-identical to those recorded before the tracker refactor
-(tests/data/tracker_reference.npz, from main cfcfd29), and results independent of batching."""
+(tests/data/tracker_reference.npz, from main cfcfd29; the later fine-tunes' entries from session
+16), and results independent of batching."""
 
 from __future__ import annotations
 
@@ -14,7 +15,12 @@ import trackers
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"]
+# the six recorded before the refactor, then the fine-tunes shipped since (recorded at shipping)
+CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"] + [
+    "p2b-kitti1-u-rl",
+    "gpt-kitti1-u-rl",
+    "p2b-kitti1-drct",
+]
 KEYS = ("template", "search", "size", "motion")
 
 

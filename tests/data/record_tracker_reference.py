@@ -1,14 +1,19 @@
 """Record ``tracker_reference.npz``: ``act`` and B = 1 forward outputs of the six shipped
 checkpoints on fixed observations (toy batches, padded clouds, env observations, an empty one).
 
-Recorded once from main at commit cfcfd29 (before the tracker refactor of issue 21), so
-``tests/test_trackers_reference.py`` can check the shipped checkpoints' outputs stay bit-identical.
-Run: ``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python tests/data/record_tracker_reference.py``.
+The six -U / -W entries were recorded from main at commit cfcfd29 (before the tracker refactor
+of issue 21); the entries of the checkpoints shipped since (``LATER``: the RL and DRCT
+fine-tunes) were added in session 16 from the code of that time, so that
+``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs stay
+bit-identical. Run: ``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python
+tests/data/record_tracker_reference.py [NAME ...]`` (names given: only their entries are
+recorded, the file's other entries are kept).
 """
 
 from __future__ import annotations
 
 import hashlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +24,7 @@ from envs.tracking_env import TrackingEnv, make_toy_dataset
 from trackers.toy import toy_batch
 
 CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"]
+LATER = ["p2b-kitti1-u-rl", "gpt-kitti1-u-rl", "p2b-kitti1-drct"]
 KEYS = ("template", "search", "size", "motion")
 
 
@@ -43,12 +49,18 @@ def observations() -> dict[str, np.ndarray]:
     return {k: np.stack([np.asarray(x[k], np.float32) for x in obs]) for k in KEYS}
 
 
-def main() -> None:
+def main(names: list[str]) -> None:
     torch.set_num_threads(1)
+    path = Path(__file__).with_name("tracker_reference.npz")
     obs = observations()
     out: dict[str, np.ndarray] = {f"obs_{k}": v for k, v in obs.items()}
+    if names:
+        with np.load(path) as old:
+            for key in old.files:
+                np.testing.assert_array_equal(out.get(key, old[key]), old[key], err_msg=key)
+                out[key] = old[key]
     n = len(obs["template"])
-    for name in CHECKPOINTS:
+    for name in names or CHECKPOINTS + LATER:
         model = trackers.load(name)
         out[f"{name}/act_single"] = np.stack(
             [model.act({k: v[i] for k, v in obs.items()}) for i in range(n)]
@@ -63,10 +75,9 @@ def main() -> None:
         # the fused features are large: their SHA-256 (bit-exact) instead of the values
         z = np.ascontiguousarray(np.concatenate([f["Z"].numpy() for f in fw]))
         out[f"{name}/Z_sha256"] = np.array(hashlib.sha256(z.tobytes()).hexdigest())
-    path = Path(__file__).with_name("tracker_reference.npz")
     np.savez_compressed(path, **out)
     print(path, path.stat().st_size)
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])
