@@ -487,6 +487,16 @@ def test_bad_recipe_values_stop_before_training_naming_them(key, value, message)
         config_from_dict({key: value})
 
 
+def test_set_reads_exponent_numbers_without_a_dot():
+    """``--set adam_eps=1e-8``: YAML 1.1 reads ``1e-8`` as a string; it is the number."""
+    from training.config import parse_value
+
+    cfg = config_from_dict({"adam_eps": parse_value("1e-8"), "lr": parse_value("3e-4")})
+    assert cfg.adam_eps == 1e-8 and cfg.lr == 3e-4 and type(cfg.adam_eps) is float
+    with pytest.raises(ConfigError, match="adam_eps='tiny': must be a number"):
+        config_from_dict({"adam_eps": parse_value("tiny")})
+
+
 def test_unknown_recipe_and_bad_field_are_both_named():
     with pytest.raises(ConfigError) as err:
         config_from_dict({"recipe": "v0", "init": "zeros"})

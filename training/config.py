@@ -416,6 +416,12 @@ def _check_type(key: str, value: Any) -> Any:
             raise TypeError("must be an integer")
         return value
     if base is float:
+        if isinstance(value, str):
+            # YAML 1.1 (PyYAML) reads 1e-8 (no dot) as a string: take it as the number it is
+            try:
+                return float(value)
+            except ValueError:
+                raise TypeError("must be a number") from None
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise TypeError("must be a number")
         return float(value)
