@@ -7,6 +7,7 @@ import dataclasses
 import json
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -408,7 +409,14 @@ def test_loss_counts_cover_bat_and_gpt_terms():
 
 def test_kaiming_init_and_torch_default_init():
     torch.manual_seed(0)
-    v2 = default_model_factory(config_from_dict({"model_size": "slim", "recipe": "v2"}))
+    with pytest.warns(UserWarning, match="init='kaiming'.*--set init=default"):
+        v2 = default_model_factory(config_from_dict({"model_size": "slim", "recipe": "v2"}))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the papers' widths, or torch's init: no warning
+        default_model_factory(config_from_dict({"model_size": "default", "recipe": "v2"}))
+        default_model_factory(
+            config_from_dict({"model_size": "slim", "recipe": "v2", "init": "default"})
+        )
     torch.manual_seed(0)
     v1 = default_model_factory(config_from_dict({"model_size": "slim", "recipe": "v1"}))
     lin2 = next(m for m in v2.modules() if isinstance(m, torch.nn.Linear))

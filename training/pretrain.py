@@ -42,6 +42,7 @@ import dataclasses
 import json
 import os
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -119,6 +120,14 @@ def default_model_factory(cfg: TrainConfig) -> torch.nn.Module:
 
     model = trackers.make(cfg.tracker, **cfg.make_kwargs())
     if cfg.recipe_value("init") == "kaiming":
+        if cfg.model_size == "slim":
+            warnings.warn(
+                "init='kaiming' (recipe v2) kept slim P2B at the floor for 6,400 samples in "
+                "the ablation of docs/recipe.md, where torch's default init trained; add "
+                "--set init=default unless you are measuring that",
+                UserWarning,
+                stacklevel=2,
+            )
         kaiming_init(model)
     return model
 
