@@ -51,6 +51,9 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
   A frozen stage between trained ones (M2-Track's second PointNet) keeps its graph.
 * :meth:`TrackerPolicy.freeze_actor` stops the actor's gradients (tracker and log-std) for a
   critic warm-up.
+* :class:`SelfCriticalReward` (a ``VecEnv`` wrapper) replaces the learned critic's baseline by
+  the reward of the policy's mean action at the same state, for ``gamma=0`` (the learned critic
+  explained ~0 of the return's variance in every run of docs/rl.md).
 * Any SB3 actor-critic algorithm can drive it (PPO, A2C: ``optimizer_class`` is wrapped by
   :func:`lr_scaled`). Save the result with ``trackers.save(model.policy.tracker, path)`` or
   through ``training.finetune`` (safetensors): SB3's zips load by unpickling.
