@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import hashlib
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,15 +14,14 @@ import torch
 
 import trackers
 
+sys.path.insert(0, str(Path(__file__).resolve().parent / "data"))
+from record_tracker_reference import CHECKPOINTS as RECORDED_BEFORE_REFACTOR  # noqa: E402
+from record_tracker_reference import KEYS, LATER  # noqa: E402 - the recorder's own lists
+
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 # the six recorded before the refactor, then the fine-tunes shipped since (recorded at shipping)
-CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"] + [
-    "p2b-kitti1-u-rl",
-    "gpt-kitti1-u-rl",
-    "p2b-kitti1-drct",
-]
-KEYS = ("template", "search", "size", "motion")
+CHECKPOINTS = RECORDED_BEFORE_REFACTOR + LATER
 
 
 @pytest.fixture(scope="module")
