@@ -15,6 +15,7 @@ from training.selection import (
     ValPart,
     check_parts,
     pooled,
+    ranking_uncertainty,
     score_candidates,
 )
 
@@ -104,6 +105,11 @@ def test_score_candidates_pools_observed_categories_and_ranks(
         assert row["success"] == pytest.approx(
             sum(e["success"] * e["frames"] for e in entries) / frames, abs=1e-9
         )
+        # the per-tracklet scores the bootstrap resamples pool to the same Success
+        tracklets = row["per_tracklet"].values()
+        assert sum(t["frames"] for t in tracklets) == frames
+        assert pooled(list(tracklets))["success"] == pytest.approx(row["success"], abs=1e-9)
+    assert rows[0]["per_tracklet"].keys() == rows[1]["per_tracklet"].keys()
 
 
 def test_score_candidates_reuses_its_cache_and_rescores_on_a_new_key(
@@ -192,3 +198,74 @@ def test_score_candidates_gives_m2track_the_previous_frame(tiny_config, tmp_path
     rows = score_candidates([str(path), "previous_box"], tiny_config)
     assert {r["candidate"] for r in rows} == {str(path), "previous_box"}
     assert all(r["frames"] > 0 and 0.0 <= r["success"] <= 100.0 for r in rows)
+
+
+def _rows(success_by_candidate, frames, parts):
+    """Ranking rows for ``ranking_uncertainty``: one tracklet per column, in the given parts."""
+    rows = []
+    for name, success in success_by_candidate.items():
+        per = {
+            f"{part}/t{i}": {"success": float(s), "precision": float(s), "frames": float(f)}
+            for i, (s, f, part) in enumerate(zip(success, frames, parts, strict=True))
+        }
+        rows.append({"candidate": name, "per_tracklet": per} | pooled(list(per.values())))
+    return sorted(rows, key=lambda r: -r["success"])
+
+
+def test_ranking_uncertainty_gaps_and_shares():
+    rng = np.random.default_rng(3)
+    frames = rng.integers(5, 60, 40)
+    parts = ["0:val"] * 15 + ["1:val"] * 25
+    base = rng.uniform(10, 80, 40)
+    rows = _rows(
+        {"a": base, "b": base + rng.normal(0.5, 4.0, 40), "c": base - 3.0, "d": base.copy()},
+        frames,
+        parts,
+    )
+    got = ranking_uncertainty(rows, resamples=500, seed=1)
+    assert got == ranking_uncertainty(rows, resamples=500, seed=1)  # seeded
+    assert got != ranking_uncertainty(rows, resamples=500, seed=2)
+    assert sum(u["p_first"] for u in got) == pytest.approx(1.0)
+    for row, u in zip(rows, got, strict=True):
+        assert u["diff_to_first"] == pytest.approx(row["success"] - rows[0]["success"], abs=1e-9)
+        assert (
+            u["diff_lo"] <= u["diff_to_first"] + 1e-9 and u["diff_to_first"] - 1e-9 <= u["diff_hi"]
+        )
+    by_name = {r["candidate"]: u for r, u in zip(rows, got, strict=True)}
+    # c is 3 points below a on every tracklet: the gap is exact in every resample, and c never wins
+    gap_c = by_name["c"]["diff_to_first"] - by_name["a"]["diff_to_first"]
+    assert gap_c == pytest.approx(-3.0)
+    assert by_name["c"]["p_first"] == 0.0
+    # a and d are the same candidate: ties go to the first-ranked of the two, d never wins
+    assert by_name["a"]["diff_lo"] == by_name["d"]["diff_lo"]
+    assert min(by_name["a"]["p_first"], by_name["d"]["p_first"]) == 0.0
+    # a wider interval at a higher level
+    wide = ranking_uncertainty(rows, resamples=500, seed=1, level=0.99)
+    assert wide[-1]["diff_lo"] <= got[-1]["diff_lo"] and wide[-1]["diff_hi"] >= got[-1]["diff_hi"]
+
+
+def test_ranking_uncertainty_resamples_within_parts():
+    """With one tracklet per part every stratified resample is the data itself: no spread, and the
+    best candidate wins every draw (a draw across parts would mix them and spread)."""
+    rows = _rows(
+        {"a": [50.0, 10.0, 30.0], "b": [10.0, 60.0, 31.0]},
+        [10, 30, 5],
+        ["0:val", "1:val", "1:test"],
+    )
+    got = ranking_uncertainty(rows, resamples=200)
+    assert [r["candidate"] for r in rows] == ["b", "a"]
+    assert got[1]["diff_lo"] == pytest.approx(got[1]["diff_to_first"])
+    assert got[1]["diff_hi"] == pytest.approx(got[1]["diff_to_first"])
+    assert got[0]["p_first"] == 1.0 and got[1]["p_first"] == 0.0
+
+
+def test_ranking_uncertainty_refuses_unpaired_rows_naming_them():
+    rows = _rows({"a": [1.0, 2.0], "b": [3.0, 4.0]}, [1, 1], ["0:val", "0:val"])
+    del rows[1]["per_tracklet"]["0:val/t1"]
+    with pytest.raises(ValueError, match=f"candidate '{rows[1]['candidate']}'.*same ones"):
+        ranking_uncertainty(rows)
+    with pytest.raises(ValueError, match="resamples"):
+        ranking_uncertainty(rows[:1], resamples=0)
+    with pytest.raises(ValueError, match="level"):
+        ranking_uncertainty(rows[:1], level=1.0)
+    assert ranking_uncertainty([]) == []

@@ -36,6 +36,7 @@ __all__ = [
     "format_ranking",
     "load_candidate",
     "pooled",
+    "ranking_uncertainty",
     "score_candidates",
 ]
 
@@ -184,8 +185,10 @@ def score_candidates(
 
     Returns:
         One row per candidate, best first (ties keep the given order): ``{"candidate", "success",
-        "precision", "frames", "parts": {"2:val": {"success", "precision", "frames"}, ...}}``,
-        Success / Precision in % over the observed categories.
+        "precision", "frames", "parts": {"2:val": {"success", "precision", "frames"}, ...},
+        "per_tracklet": {"2:val/0017/10": {"success", "precision", "frames"}, ...}}``, Success /
+        Precision in % over the observed categories (``per_tracklet`` feeds
+        :func:`ranking_uncertainty`).
     """
     from envs.data import get_setting
     from envs.tracking_env import make_synthetic_env
@@ -213,6 +216,7 @@ def score_candidates(
         for part in config.parts:
             remove_stale_temps(cache / f"w{part.world_seed}-{part.split}")
     per_part: dict[str, dict[str, dict[str, float]]] = {c: {} for c in candidates}
+    per_tracklet: dict[str, dict[str, dict[str, float]]] = {c: {} for c in candidates}
     # each candidate is scored with the env options it records (e.g. recipe v2's template mode)
     options = {c: env_options_for([loaded[c]]) for c in candidates}
     # and with the opt-in observation keys it reads (M2-Track's previous frame)
@@ -287,6 +291,15 @@ def score_candidates(
             per_part[candidate][str(part)] = {
                 k: float(entry[k]) for k in ("success", "precision", "frames")
             }
+            per_tracklet[candidate].update(
+                {
+                    f"{part}/{t['tracklet']}": {
+                        k: float(t[k]) for k in ("success", "precision", "frames")
+                    }
+                    for t in report["per_tracklet"]
+                    if t["observed"] and t["frames"]
+                }
+            )
             if log is not None:
                 log(
                     f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
@@ -295,10 +308,82 @@ def score_candidates(
         for env in envs.values():
             env.close()
     rows = [
-        {"candidate": c} | pooled(list(per_part[c].values())) | {"parts": per_part[c]}
+        {"candidate": c}
+        | pooled(list(per_part[c].values()))
+        | {"parts": per_part[c], "per_tracklet": per_tracklet[c]}
         for c in candidates
     ]
     return sorted(rows, key=lambda r: -r["success"])
+
+
+def ranking_uncertainty(
+    rows: Sequence[Mapping[str, Any]],
+    *,
+    resamples: int = 2000,
+    level: float = 0.9,
+    seed: int = 0,
+) -> list[dict[str, float]]:
+    """How sure the ranking of :func:`score_candidates` is: a paired bootstrap over tracklets.
+
+    A gap of a point between two checkpoints can come from a handful of tracklets. Each
+    resample redraws the tracklets of every part with replacement (as many as the part has, so
+    each part keeps its size) and pools every candidate's Success over the same draw, so the
+    candidates are compared on identical data, as the ranking compares them.
+
+    Args:
+        rows: ranked rows with ``per_tracklet`` (all candidates scored on the same tracklets).
+        resamples: bootstrap draws.
+        level: two-sided coverage of the interval (0.9: the 5th and 95th percentiles).
+        seed: seed of the ``numpy.random.Generator`` drawing the resamples.
+
+    Returns:
+        One dict per row, in the rows' order: ``diff_to_first`` (the row's pooled Success minus
+        the first row's, in points), ``diff_lo`` / ``diff_hi`` (its bootstrap interval) and
+        ``p_first`` (the fraction of resamples in which this candidate pools the highest Success;
+        the values sum to 1).
+    """
+    import numpy as np
+
+    if not rows:
+        return []
+    if resamples < 1:
+        raise ValueError(f"resamples must be >= 1, got {resamples}")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    keys = list(rows[0]["per_tracklet"])
+    for row in rows[1:]:
+        if set(row["per_tracklet"]) != set(keys):
+            raise ValueError(
+                f"candidate {row['candidate']!r} was scored on other tracklets than "
+                f"{rows[0]['candidate']!r}: a paired comparison needs the same ones"
+            )
+    if not keys:
+        raise ValueError("no tracklets with frames to resample")
+    success = np.array([[r["per_tracklet"][k]["success"] for k in keys] for r in rows])  # (C, T)
+    frames = np.array([rows[0]["per_tracklet"][k]["frames"] for k in keys])  # (T,)
+    part_of = np.array([k.split("/", 1)[0] for k in keys])
+    rng = np.random.default_rng(seed)
+    counts = np.zeros((resamples, len(keys)))  # (R, T) times each tracklet is drawn
+    for part in dict.fromkeys(part_of):
+        columns = np.flatnonzero(part_of == part)
+        counts[:, columns] = rng.multinomial(
+            len(columns), np.full(len(columns), 1.0 / len(columns)), size=resamples
+        )
+    weights = counts * frames  # (R, T)
+    scores = weights @ success.T / weights.sum(axis=1, keepdims=True)  # (R, C)
+    diffs = scores - scores[:, :1]
+    observed = success @ frames / frames.sum()  # (C,) equals each row's pooled Success
+    lo, hi = np.quantile(diffs, [(1.0 - level) / 2, (1.0 + level) / 2], axis=0)
+    first = np.bincount(scores.argmax(axis=1), minlength=len(rows)) / resamples
+    return [
+        {
+            "diff_to_first": float(observed[c] - observed[0]),
+            "diff_lo": float(lo[c]),
+            "diff_hi": float(hi[c]),
+            "p_first": float(first[c]),
+        }
+        for c in range(len(rows))
+    ]
 
 
 def _read_cached(path: Path | None, key: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -312,19 +397,29 @@ def _read_cached(path: Path | None, key: Mapping[str, Any]) -> dict[str, Any] | 
     return report if report.get("selection_key") == dict(key) else None
 
 
-def format_ranking(rows: Sequence[Mapping[str, Any]]) -> str:
-    """A text table of :func:`score_candidates` rows: rank, pooled Success / Precision, frames and
-    each part's Success."""
+def format_ranking(
+    rows: Sequence[Mapping[str, Any]],
+    uncertainty: Sequence[Mapping[str, float]] | None = None,
+) -> str:
+    """A text table of :func:`score_candidates` rows: rank, pooled Success / Precision, frames,
+    each part's Success and, given :func:`ranking_uncertainty`'s output, the gap to the first
+    with its interval and the share of resamples that rank the candidate first."""
     if not rows:
         return ""
     parts = list(rows[0]["parts"])
     name_w = max(len("candidate"), *(len(str(r["candidate"])) for r in rows))
     head = f"{'#':>2} {'candidate':<{name_w}} | {'Succ':>5} / {'Prec':>5} | {'frames':>6} | "
+    if uncertainty is not None:
+        head += f"{'vs 1st [interval]':>21} | {'P(1st)':>6} | "
     lines = [head + " ".join(f"{p:>7}" for p in parts)]
     for i, r in enumerate(rows, 1):
-        lines.append(
+        line = (
             f"{i:>2} {r['candidate']:<{name_w}} | {r['success']:5.1f} / {r['precision']:5.1f} | "
             f"{int(r['frames']):6d} | "
-            + " ".join(f"{r['parts'][p]['success']:7.1f}" for p in parts)
         )
+        if uncertainty is not None:
+            u = uncertainty[i - 1]
+            gap = f"{u['diff_to_first']:+.1f} [{u['diff_lo']:+.1f}, {u['diff_hi']:+.1f}]"
+            line += f"{gap:>21} | {u['p_first']:6.2f} | "
+        lines.append(line + " ".join(f"{r['parts'][p]['success']:7.1f}" for p in parts))
     return "\n".join(lines)

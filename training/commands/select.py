@@ -64,7 +64,13 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from training.evaluate import save_report
-    from training.selection import SelectionConfig, ValPart, format_ranking, score_candidates
+    from training.selection import (
+        SelectionConfig,
+        ValPart,
+        format_ranking,
+        ranking_uncertainty,
+        score_candidates,
+    )
 
     try:
         config = SelectionConfig(
@@ -85,14 +91,18 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             log=print,
         )
+        uncertainty = ranking_uncertainty(rows)
     except ValueError as exc:
         raise SystemExit(f"pointtrack select: {exc}") from exc
-    print(format_ranking(rows))
-    print(f"selected: {rows[0]['candidate']} (pooled observed Success {rows[0]['success']:.2f})")
+    print(format_ranking(rows, uncertainty))
+    print(
+        f"selected: {rows[0]['candidate']} (pooled observed Success {rows[0]['success']:.2f}; "
+        f"ranked first in {uncertainty[0]['p_first']:.0%} of tracklet resamples)"
+    )
     if out is not None:
         summary = {
             "config": {**vars(config), "parts": [str(p) for p in config.parts]},
-            "ranking": rows,
+            "ranking": [row | {"uncertainty": u} for row, u in zip(rows, uncertainty, strict=True)],
         }
         path = save_report(summary, out / "selection.json")
         print(f"wrote {path}")
