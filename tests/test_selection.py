@@ -269,3 +269,37 @@ def test_ranking_uncertainty_refuses_unpaired_rows_naming_them():
     with pytest.raises(ValueError, match="level"):
         ranking_uncertainty(rows[:1], level=1.0)
     assert ranking_uncertainty([]) == []
+
+
+def test_cli_select_prints_and_saves_the_bootstrap_and_the_script_rebuilds_it(
+    tmp_path, capsys, one_torch_thread
+):
+    """`pointtrack select --out` writes each row's uncertainty; the experiment script rebuilds the
+    same rows (per-tracklet scores included) from the cache, even with a stale report of another
+    file under a candidate's name beside the right one."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from training.cli import main
+
+    pytest.importorskip("envs.synthetic")
+    out = tmp_path / "sel"
+    argv = ["select", "previous_box", "constant_velocity", "--preset", "tiny", "--num-envs", "1"]
+    assert main([*argv, "--parts", "0:val", "1:val", "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "P(1st)" in printed and "of tracklet resamples" in printed
+    saved = json.loads((out / "selection.json").read_text())["ranking"]
+    assert ranking_uncertainty(saved) == [row["uncertainty"] for row in saved]
+    stale = next((out / "parts").rglob("previous_box-*.json"))
+    report = json.loads(stale.read_text())
+    report["observed"]["success"] += 1.0
+    report["per_tracklet"] = [t | {"success": 0.0} for t in report["per_tracklet"]]
+    (stale.parent / "previous_box-ffffffffffff.json").write_text(json.dumps(report))
+
+    path = Path(__file__).parents[1] / "experiments" / "selection_uncertainty.py"
+    spec = importlib.util.spec_from_file_location("selection_uncertainty", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    rebuilt = script.rows_from_selection_dir(out)
+    assert [r["per_tracklet"] for r in rebuilt] == [r["per_tracklet"] for r in saved]
