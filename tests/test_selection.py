@@ -295,7 +295,7 @@ def test_cli_select_prints_and_saves_the_bootstrap_and_the_script_rebuilds_it(
     report = json.loads(stale.read_text())
     report["observed"]["success"] += 1.0
     report["per_tracklet"] = [t | {"success": 0.0} for t in report["per_tracklet"]]
-    (stale.parent / "previous_box-ffffffffffff.json").write_text(json.dumps(report))
+    (stale.parent / "previous_box-zzzzzzzzzzzz.json").write_text(json.dumps(report))
 
     path = Path(__file__).parents[1] / "experiments" / "selection_uncertainty.py"
     spec = importlib.util.spec_from_file_location("selection_uncertainty", path)
