@@ -339,8 +339,8 @@ def ranking_uncertainty(
     Returns:
         One dict per row, in the rows' order: ``diff_to_first`` (the row's pooled Success minus
         the first row's, in points), ``diff_lo`` / ``diff_hi`` (its bootstrap interval) and
-        ``p_first`` (the fraction of resamples in which this candidate pools the highest Success;
-        the values sum to 1).
+        ``p_first`` (the fraction of resamples in which this candidate pools the highest Success,
+        a tie going to the higher-ranked row; the values sum to 1).
     """
     import numpy as np
 
