@@ -13,7 +13,7 @@ import argparse
 import json
 from pathlib import Path
 
-from training.selection import format_ranking, ranking_uncertainty
+from training.selection import format_ranking, observed_tracklet_scores, ranking_uncertainty
 
 
 def rows_from_selection_dir(directory: Path) -> list[dict]:
@@ -28,11 +28,7 @@ def rows_from_selection_dir(directory: Path) -> list[dict]:
         # replaced since): the row's own is the one with the part score the ranking shows
         if row is None or report["observed"]["success"] != row["parts"][key["part"]]["success"]:
             continue
-        for t in report["per_tracklet"]:
-            if t["observed"] and t["frames"]:
-                row["per_tracklet"][f"{key['part']}/{t['tracklet']}"] = {
-                    k: float(t[k]) for k in ("success", "precision", "frames")
-                }
+        row["per_tracklet"].update(observed_tracklet_scores(report, key["part"]))
     return list(rows.values())
 
 

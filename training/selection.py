@@ -35,6 +35,7 @@ __all__ = [
     "check_parts",
     "format_ranking",
     "load_candidate",
+    "observed_tracklet_scores",
     "pooled",
     "ranking_uncertainty",
     "score_candidates",
@@ -291,15 +292,7 @@ def score_candidates(
             per_part[candidate][str(part)] = {
                 k: float(entry[k]) for k in ("success", "precision", "frames")
             }
-            per_tracklet[candidate].update(
-                {
-                    f"{part}/{t['tracklet']}": {
-                        k: float(t[k]) for k in ("success", "precision", "frames")
-                    }
-                    for t in report["per_tracklet"]
-                    if t["observed"] and t["frames"]
-                }
-            )
+            per_tracklet[candidate].update(observed_tracklet_scores(report, str(part)))
             if log is not None:
                 log(
                     f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
@@ -314,6 +307,16 @@ def score_candidates(
         for c in candidates
     ]
     return sorted(rows, key=lambda r: -r["success"])
+
+
+def observed_tracklet_scores(report: Mapping[str, Any], part: str) -> dict[str, dict[str, float]]:
+    """A part report's observed tracklets with frames, as ``{"PART/TRACKLET": {"success",
+    "precision", "frames"}}`` (the ``per_tracklet`` of a :func:`score_candidates` row)."""
+    return {
+        f"{part}/{t['tracklet']}": {k: float(t[k]) for k in ("success", "precision", "frames")}
+        for t in report["per_tracklet"]
+        if t["observed"] and t["frames"]
+    }
 
 
 def ranking_uncertainty(
