@@ -1,6 +1,6 @@
 """RL fine-tuning of a pretrained tracker with stable-baselines3: ``pointtrack finetune``.
 
-Two algorithms (:data:`ALGOS`):
+Three algorithms (:data:`ALGOS`):
 
 * ``"ppo"`` (default): PPO on :class:`training.rl.TrackerPolicy`, whose actor *is* the tracker
   (its weights are what trains). ``K`` sub-envs (``DummyVecEnv``) step together, so every
@@ -9,6 +9,11 @@ Two algorithms (:data:`ALGOS`):
   PPO bootstraps from the value of the clip's last observation). The first ``warmup_rollouts``
   updates train the critic alone (actor frozen), then PPO with ``target_kl``, gradient clipping
   and two learning rates (``tracker_lr`` for the tracker, ``lr`` for the value head and log-std).
+* ``"group"``: :class:`training.rl.GroupPPO` on the same policy and envs: ``group_size``
+  sampled actions per visited state, scored by the env without stepping, each one's advantage
+  its reward minus the group's mean; the env steps with the mean action. One-step rewards: no
+  critic, so ``gamma``, ``gae_lambda``, ``critic``, ``baseline`` and ``warmup_rollouts`` do not
+  apply (a ``baseline`` other than ``critic`` is refused).
 * ``"residual"``: the earlier variant: the tracker is frozen and a small Gaussian MLP learns a
   residual on 23 hand-made features (:class:`ResidualTrackingEnv`).
 
@@ -33,6 +38,7 @@ episodes in flight at the kill are lost and new ones are drawn from a seed deriv
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import math
@@ -63,7 +69,7 @@ __all__ = [
     "load_state",
 ]
 
-ALGOS = ("ppo", "residual")
+ALGOS = ("ppo", "group", "residual")
 BASELINES = ("critic", "self_critical")
 STATE_FORMAT = "pointtrack-finetune-state"
 RESIDUAL_FORMAT = "pointtrack-residual"
@@ -112,6 +118,7 @@ class FinetuneConfig:
     clip_range: float = 0.1
     max_grad_norm: float = 0.5
     gamma: float = 0.9
+    group_size: int = 8  # --algo group: sampled actions per state
     gae_lambda: float = 0.95
     ent_coef: float = 0.0
     seed: int = 0
@@ -137,6 +144,13 @@ class FinetuneConfig:
         ):
             if value not in valid:
                 errors.append(f"{name} must be one of {list(valid)}, got {value!r}")
+        if self.group_size < 2:
+            errors.append(f"group_size must be >= 2, got {self.group_size}")
+        if self.algo == "group" and self.baseline != "critic":
+            errors.append(
+                f"baseline {self.baseline!r} does not apply to algo 'group' (its baseline is "
+                f"the group's mean reward)"
+            )
         for name in ("timesteps", "num_envs", "n_epochs", "threads", "save_every"):
             if getattr(self, name) < 1:
                 errors.append(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -256,8 +270,8 @@ def check_out_dir(
         if (out / name).exists()
     ]
     if resume:
-        if cfg.algo != "ppo":
-            raise FinetuneError("--resume is only available for --algo ppo")
+        if cfg.algo == "residual":
+            raise FinetuneError("--resume is only available for --algo ppo and group")
         if not state.is_file():
             raise FinetuneError(f"nothing to resume: {state} does not exist")
         meta = _read_meta(state)
@@ -468,7 +482,7 @@ class _PPORun:
     ) -> None:
         from stable_baselines3 import PPO
 
-        from training.rl import SelfCriticalReward, TrackerPolicy
+        from training.rl import GroupPPO, SelfCriticalReward, TrackerPolicy
 
         self.cfg, self.out, self.log = cfg, out, log
         self.progress = progress
@@ -479,7 +493,10 @@ class _PPORun:
         self.env = make_vec_env(make_env, cfg.num_envs, cfg.clip_length)
         if cfg.baseline == "self_critical":
             self.env = SelfCriticalReward(self.env)
-        self.model = PPO(
+        algorithm: Any = PPO
+        if cfg.algo == "group":
+            algorithm = functools.partial(GroupPPO, group_size=cfg.group_size)
+        self.model = algorithm(
             TrackerPolicy,
             self.env,
             learning_rate=cfg.lr,
@@ -534,7 +551,7 @@ class _PPORun:
     def check_rollout(self) -> None:
         buf = self.model.rollout_buffer
         for name in ("rewards", "values", "log_probs", "actions"):
-            if not np.all(np.isfinite(getattr(buf, name))):
+            if not np.all(np.isfinite(getattr(buf, name, 0.0))):
                 self._non_finite(f"{name} of the rollout")
 
     def after_update(self) -> None:
@@ -638,12 +655,14 @@ class _PPORun:
                 total=cfg.timesteps,
                 initial=min(self.steps_at_start, cfg.timesteps),
                 unit="step",
-                desc="finetune ppo",
+                desc=f"finetune {cfg.algo}",
                 dynamic_ncols=True,
             )
         callback = _RunCallback.make(self)
         try:
-            warmup_steps = cfg.warmup_rollouts * self.rollout_steps
+            # GroupPPO has no critic to warm up
+            warmup = 0 if cfg.algo == "group" else cfg.warmup_rollouts
+            warmup_steps = warmup * self.rollout_steps
             for frozen, until in ((True, min(warmup_steps, cfg.timesteps)), (False, cfg.timesteps)):
                 remaining = until - self.model.num_timesteps
                 if remaining <= 0:

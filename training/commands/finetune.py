@@ -42,7 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     config_flag("tracker", "a shipped checkpoint name or a tracker checkpoint file")
     config_flag(
         "algo",
-        "ppo: train the tracker as the policy; residual: a residual MLP on the frozen one",
+        "ppo: train the tracker as the policy; group: the same with --group-size sampled "
+        "actions per state (one-step rewards, no critic); residual: a residual MLP on the "
+        "frozen one",
         choices=ALGOS,
     )
     config_flag("setting", "its observed categories are trained on")
@@ -76,6 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "the same state (self_critical; needs --gamma 0)",
         choices=BASELINES,
     )
+    config_flag("group-size", "--algo group: sampled actions scored per state")
     config_flag("log-std-init", "initial log standard deviation (normalised action units)")
     config_flag("warmup-rollouts", "first updates train the critic only (actor frozen)")
     config_flag("target-kl", "stop an update's epochs when approx_kl exceeds 1.5x this")
