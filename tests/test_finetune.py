@@ -4,6 +4,7 @@ the residual variant without unpickling (issue 22 items 2, 5; issue 23 rows 1, 1
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import os
 import pickle
@@ -100,7 +101,9 @@ def test_out_dir_refusals_name_the_problem(tmp_path, data):
         run(tiny_cfg(timesteps=16, gamma=0.5, tracker="bat-kitti1-u"), out, data, resume=True)
     with pytest.raises(ft.FinetuneError, match="nothing to resume"):
         run(tiny_cfg(), tmp_path / "empty", data, resume=True)
-    with pytest.raises(ft.FinetuneError, match="algo must be one of \\['ppo', 'residual'\\]"):
+    with pytest.raises(
+        ft.FinetuneError, match="algo must be one of \\['ppo', 'group', 'residual'\\]"
+    ):
         run(tiny_cfg(algo="sac"), tmp_path / "x", data)
     if not torch.cuda.is_available():
         with pytest.raises(ft.FinetuneError, match="device 'cuda': CUDA is not available"):
@@ -123,6 +126,27 @@ def test_self_critical_run_trains_and_needs_one_step_returns(tmp_path, data):
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert any(r["ep_reward"] is not None for r in records)
     assert all(r["ep_reward"] is None or r["ep_reward"] >= 0 for r in records)
+
+
+def test_group_run_trains_resumes_and_refuses_what_does_not_apply(tmp_path, data):
+    with pytest.raises(ft.FinetuneError, match="group_size must be >= 2, got 1"):
+        run(tiny_cfg(algo="group", group_size=1), tmp_path / "bad", data)
+    with pytest.raises(ft.FinetuneError, match="baseline 'self_critical' does not apply"):
+        run(tiny_cfg(algo="group", baseline="self_critical", gamma=0.0), tmp_path / "bad", data)
+    out = tmp_path / "run"
+    cfg = tiny_cfg(algo="group", group_size=4, timesteps=16, snapshot_every=2)
+    assert run(cfg, out, data).timesteps == 16
+    result = run(dataclasses.replace(cfg, timesteps=32), out, data, resume=True)
+    assert result.timesteps == 32 and log_steps(out) == [8, 16, 24, 32]
+    records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    # no critic warm-up: the actor trains from the first update
+    assert not any(r["actor_frozen"] for r in records)
+    assert all(r["group_reward_std"] >= 0 and 0 <= r["iou"] <= 1 for r in records)
+    tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
+    changed = [k for k, v in tuned.state_dict().items() if not torch.equal(v, base.state_dict()[k])]
+    assert changed and all(k.startswith("head.") for k in changed)
+    with pytest.raises(ft.FinetuneError, match="group_size: saved 4, given 8"):
+        run(dataclasses.replace(cfg, timesteps=48, group_size=8), out, data, resume=True)
 
 
 def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch):
@@ -435,6 +459,7 @@ def test_every_finetune_flag_reaches_the_config():
         "clip_range": ("0.2", 0.2),
         "max_grad_norm": ("1", 1.0),
         "gamma": ("0", 0.0),
+        "group_size": ("4", 4),
         "gae_lambda": ("0.9", 0.9),
         "ent_coef": ("0.01", 0.01),
         "seed": ("7", 7),

@@ -13,7 +13,7 @@ from stable_baselines3 import PPO
 
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
-from training.rl import ScaledAdam, SelfCriticalReward, TrackerPolicy
+from training.rl import GroupPPO, ScaledAdam, SelfCriticalReward, TrackerPolicy
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 ONE = np.ones(4, dtype=np.float32)
@@ -357,3 +357,85 @@ def test_m2track_policy_refuses_an_env_without_previous_search_and_fusion_parts(
         ppo(data, "m2track-kitti1-u")
     with pytest.raises(ValueError, match=r"m2track.*no such part.*\['head', 'all'\]"):
         m2_ppo(data, policy_kwargs={"train_parts": "fusion+head"})
+
+
+# ---------------------------------------------------------------- GroupPPO
+
+
+def group_ppo(data, tracker, num_envs: int = 2, **kwargs) -> GroupPPO:
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    venv = DummyVecEnv([lambda: rescaled(data)] * num_envs)
+    defaults = {"n_steps": 4, "batch_size": 8, "n_epochs": 1, "seed": 0, "device": "cpu"}
+    policy_kwargs = {"tracker": tracker, "log_std_init": -1.0, **kwargs.pop("policy_kwargs", {})}
+    return GroupPPO(TrackerPolicy, venv, policy_kwargs=policy_kwargs, **{**defaults, **kwargs})
+
+
+def collect(model: GroupPPO, callback=None) -> None:
+    """One rollout through SB3's own entry points (what ``learn`` does before ``train``);
+    ``callback``: that of an earlier ``_setup_learn`` (which reset the sub-envs)."""
+    if callback is None:
+        _, callback = model._setup_learn(model.n_steps * model.n_envs, callback=None)
+    callback.on_training_start(locals(), globals())
+    assert model.collect_rollouts(model.env, callback, model.rollout_buffer, model.n_steps)
+
+
+def test_group_ppo_scores_every_sample_and_steps_with_the_mean(data):
+    """Each of the K samples' rewards is what the env would give for it at that state, and the
+    env moves with the policy's mean action: both checked on pickled twins of the sub-envs,
+    stepped alongside with the policy's deterministic action."""
+    import pickle
+
+    base = trackers.load("p2b-kitti1-u")
+    model = group_ppo(data, base, group_size=5)
+    _, callback = model._setup_learn(8, callback=None)  # resets (and seeds) the sub-envs
+    wrappers = model.env.envs  # RescaleAction: its .action() maps [-1, 1] to env units
+    twins = [pickle.loads(pickle.dumps(e.unwrapped)) for e in wrappers]
+    obs = {k: v.copy() for k, v in model._last_obs.items()}
+    collect(model, callback)
+    buf = model.rollout_buffer
+    assert buf.actions.shape == (8, 5, 4) and buf.rewards.shape == (8, 5) == buf.log_probs.shape
+    np.testing.assert_allclose(buf.advantages.sum(axis=1), 0.0, atol=1e-12)
+    assert np.ptp(buf.actions, axis=1).min() > 0  # distinct samples per state
+    for t in range(4):
+        rows = slice(2 * t, 2 * t + 2)  # each step's sub-envs, stacked
+        for key, value in obs.items():
+            np.testing.assert_array_equal(buf.observations[key][rows], value)
+        for i, twin in enumerate(twins):
+            for k, action in enumerate(buf.actions[rows][i]):
+                a = np.clip(action, -1, 1) * base.max_action
+                assert buf.rewards[2 * t + i, k] == twin.reward_for_action(a)
+        mean, _ = model.policy.predict(obs, deterministic=True)  # the weights have not moved
+        steps = [twin.step(w.action(m)) for twin, w, m in zip(twins, wrappers, mean, strict=True)]
+        obs = stack([step[0] for step in steps])
+    # stored log-probabilities are the sampling policy's: the first update sees ratio 1
+    model.train()
+    assert model.logger.name_to_value["train/approx_kl"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_group_ppo_moves_the_mean_toward_the_better_samples(data):
+    """With rewards that grow with a sample's dx, one update raises the mean dx on every state
+    of the rollout (the sign of the group-relative gradient; the soft mean, because a best
+    proposal can switch under any step)."""
+    model = group_ppo(
+        data, "p2b-kitti1-u", group_size=8, learning_rate=1e-3,
+        policy_kwargs={"tracker_lr_scale": 1.0, "action_mode": "soft"},
+    )  # fmt: skip
+    collect(model)
+    buf = model.rollout_buffer
+    buf.rewards = buf.actions[..., 0].astype(np.float64)
+    buf.advantages = buf.rewards - buf.rewards.mean(axis=1, keepdims=True)
+    obs = {k: torch.as_tensor(v) for k, v in buf.observations.items()}
+    with torch.no_grad():
+        before = model.policy.mean_and_value(obs, value=False)[0]
+    model.train()
+    with torch.no_grad():
+        after = model.policy.mean_and_value(obs, value=False)[0]
+    assert (after[:, 0] > before[:, 0]).all()
+
+
+def test_group_ppo_bad_inputs(data):
+    with pytest.raises(ValueError, match="group_size must be >= 2"):
+        group_ppo(data, "p2b-kitti1-u", group_size=1)
+    with pytest.raises(TypeError, match="GroupPPO needs TrackerPolicy"):
+        GroupPPO("MultiInputPolicy", rescaled(data), n_steps=4, batch_size=4)
