@@ -11,8 +11,9 @@ Examples::
 ``--algo ppo`` trains the tracker itself (``training.rl.TrackerPolicy``) on the train split's
 observed categories and writes ``OUT/tracker.safetensors``, an ordinary tracker checkpoint;
 ``--algo group`` trains the same policy from ``--group-size`` sampled actions per state
-(``training.rl.GroupPPO``); ``--algo residual`` trains a small residual policy on top of the frozen tracker and writes
-``OUT/residual.safetensors`` (also accepted by ``pointtrack eval --tracker``). See
+(``training.rl.GroupPPO``); ``--algo residual`` trains a small residual policy on top of the
+frozen tracker and writes ``OUT/residual.safetensors`` (also accepted by
+``pointtrack eval --tracker``). See
 :mod:`training.finetune` and docs/rl.md.
 """
 
