@@ -43,13 +43,13 @@ check)
   python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py tests/test_ops.py 2>&1 |
     tee "$OUT/pytest.log" | tail -30
   for size in slim default; do
-    python3 benchmarks/bench_training.py --trackers p2b,bat,gpt --modes none,decorrelation \
-      --config "$size" --batch 16 --steps 5 --device cuda --workers 4 --recipe v1
+    python3 benchmarks/bench_training.py --trackers p2b,bat,gpt --modes none \
+      --config "$size" --batch 16 --steps 4 --device cuda --workers 4 --recipe v1
   done 2>&1 | tee "$OUT/bench.log"
   for _ in $(seq 120); do grep -q worlds /tmp/world.log && break; sleep 1; done
   cat /tmp/world.log
   start=$SECONDS
-  timeout 150 bash -c "$(declare -f train_u); train_u --epochs 2 --out /tmp/smoke" \
+  timeout 90 bash -c "$(declare -f train_u); train_u --epochs 2 --out /tmp/smoke" \
     >"$OUT/smoke.log" 2>&1
   rc=$?
   echo "2 epochs (800 samples + 2 vals): $((SECONDS - start)) s, rc $rc"
