@@ -38,7 +38,11 @@ def exact_fp32():
 DISTINCT_CLOUDS = [0, 1, 2, 5, 6, 7]
 
 
-@pytest.mark.parametrize("name", CHECKPOINTS + LATER)
+# the nine shipped when this ran there; the kitti-2 P2B pair came later, untried on CUDA
+RAN_ON_CUDA = [n for n in CHECKPOINTS + LATER if "kitti2" not in n]
+
+
+@pytest.mark.parametrize("name", RAN_ON_CUDA)
 def test_shipped_checkpoint_acts_on_cuda_as_on_cpu(name, exact_fp32):
     """The recorded observations without padding copies (toy batches, env steps, an empty
     template): each action on CUDA is the CPU reference's to 1 mm / 1 mrad."""

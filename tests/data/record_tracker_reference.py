@@ -3,7 +3,8 @@ checkpoints on fixed observations (toy batches, padded clouds, env observations,
 
 The six -U / -W entries were recorded from main at commit cfcfd29 (before the tracker refactor
 of issue 21); the entries of the checkpoints shipped since (``LATER``: the RL and DRCT
-fine-tunes) were added in session 16 from the code of that time, so that
+fine-tunes, session 16; the kitti-2 P2B checkpoints, session 20) were added from the code of
+their time, so that
 ``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs stay
 bit-identical. Run: ``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python
 tests/data/record_tracker_reference.py [NAME ...]`` (names given: only their entries are
@@ -24,7 +25,7 @@ from envs.tracking_env import TrackingEnv, make_toy_dataset
 from trackers.toy import toy_batch
 
 CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"]
-LATER = ["p2b-kitti1-u-rl", "gpt-kitti1-u-rl", "p2b-kitti1-drct"]
+LATER = ["p2b-kitti1-u-rl", "gpt-kitti1-u-rl", "p2b-kitti1-drct", "p2b-kitti2-u", "p2b-kitti2-w"]
 KEYS = ("template", "search", "size", "motion")
 
 
