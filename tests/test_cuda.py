@@ -33,8 +33,9 @@ def exact_fp32():
 
 
 # observations 3 and 4 are clouds padded with copies of 40 and 9 distinct points: there GPT's
-# feature-space kNN meets near-ties, the two devices break them differently and its proposal
-# argmax moves by up to 0.34 m (measured on an H200, docs/performance.md "GPU")
+# feature-space kNN sits at near-ties, which the two devices' sums break differently (its
+# actions moved by up to 0.34 m on an H200; float32-sized weight noise does the same on the
+# CPU; docs/performance.md "GPU")
 DISTINCT_CLOUDS = [0, 1, 2, 5, 6, 7]
 
 
