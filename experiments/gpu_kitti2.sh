@@ -5,6 +5,8 @@
 #   bash experiments/gpu_kitti2.sh train  # the registered kitti-2 P2B runs, checkpoints to $OUT
 # The device image has torch but not gymnasium / platformdirs / stable-baselines3: those travel
 # as wheels in .whl (docs/performance.md says how). Outputs under $OUT (/tmp/gpu-out elsewhere).
+# Validation every 3rd / 6th / 2nd epoch: on that machine one val pass costs three training
+# epochs (amended after the check call's timing, before any run's Success was read).
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu-out}
 mkdir -p "$OUT"
@@ -29,8 +31,7 @@ train_w() {  # U_RUN OUT_RUN SECONDS: the registered -W run from U_RUN's best.pt
   timeout "$3" python3 -m training.cli train --tracker p2b --setting kitti-2 \
     --weighting decorrelation --dataset synthetic --preset default --model-size slim \
     --batch-size 16 --iters-per-epoch 50 --lr 1e-4 --set lr_step_epochs=6 --epochs 8 \
-    --set val_every=2 \
-    --size-jitter 0.3 --ema-decay 0.995 --threads 1 --val-max-tracklets 16 \
+    --set val_every=2 --size-jitter 0.3 --ema-decay 0.995 --threads 1 --val-max-tracklets 16 \
     --val-max-frames 40 --seed 13 --init-weights "$1/best.pt" --device cuda --num-workers 6 \
     --no-progress --out "$2"
 }
@@ -62,14 +63,16 @@ train)
   mkdir -p runs20
   (
     timeout $((DEADLINE - SECONDS - 150)) bash -c "$(declare -f train_u); train_u \
-      --epochs 30 --set lr_step_epochs=20 --set val_every=3 --out runs20/p2b-kitti2-u" >"$OUT/u30.log" 2>&1
+      --epochs 30 --set lr_step_epochs=20 --set val_every=3 --out runs20/p2b-kitti2-u" \
+      >"$OUT/u30.log" 2>&1
     train_w runs20/p2b-kitti2-u runs20/p2b-kitti2-w $((DEADLINE - SECONDS - 20)) \
       >"$OUT/w30.log" 2>&1
   ) &
   if [ "${LONG:-1}" = 1 ]; then
     (
       timeout $((DEADLINE - SECONDS - 110)) bash -c "$(declare -f train_u); train_u \
-        --epochs 60 --set lr_step_epochs=40 --set val_every=6 --out runs20/p2b-kitti2-u-60" >"$OUT/u60.log" 2>&1
+        --epochs 60 --set lr_step_epochs=40 --set val_every=6 \
+        --out runs20/p2b-kitti2-u-60" >"$OUT/u60.log" 2>&1
       train_w runs20/p2b-kitti2-u-60 runs20/p2b-kitti2-w-60 $((DEADLINE - SECONDS - 20)) \
         >"$OUT/w60.log" 2>&1
     ) &

@@ -60,9 +60,9 @@ def test_shipped_checkpoint_acts_on_cuda_as_on_cpu(name, exact_fp32):
 def test_training_on_cuda_follows_the_cpu_run(name, tmp_path, exact_fp32):
     """The real trainer (slim widths, decorrelation weighting) from the same seed on both
     devices: the same samples, point orders and initial weights, so the first epoch's mean loss
-    (steps 1 and 2) agrees, though not exactly (measured: 0.4-1.5 %; the likely cause is Adam's
-    first step, about lr x sign(gradient), where near-zero gradients can change sign between
-    devices). The CUDA checkpoint loads on the CPU."""
+    (steps 1 and 2) agrees, though not exactly (measured: 0.4-1.5 %; not traced: Adam's first
+    step, about lr x sign(gradient), would amplify the devices' rounding where gradients are
+    near zero). The CUDA checkpoint loads on the CPU."""
     from test_pretrain_support import fake_tracklets, tiny_config
 
     from training.config import tracker_config
