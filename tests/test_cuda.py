@@ -63,30 +63,13 @@ def test_training_on_cuda_follows_the_cpu_run(name, tmp_path, exact_fp32):
     (steps 1 and 2) agrees, though not exactly (measured: 0.4-1.5 %; not traced: Adam's first
     step, about lr x sign(gradient), would amplify the devices' rounding where gradients are
     near zero). The CUDA checkpoint loads on the CPU."""
-    from test_pretrain_support import fake_tracklets, tiny_config
+    from test_pretrain_support import train_slim_tracker
 
     from training.config import tracker_config
-    from training.pretrain import train
-    from training.samples import TrackingSamples
 
     def run(device: str):
-        cfg = tiny_config(
-            tmp_path / device,
-            tracker=name,
-            epochs=1,
-            batch_size=2,
-            iters_per_epoch=2,
-            lr=1e-3,
-            weighting="decorrelation",
-            model_size="slim",
-            device=device,
-        )
-        data = TrackingSamples(fake_tracklets(n=2, frames=4), candidates_per_frame=1)
-        return train(
-            cfg,
-            train_data=data,
-            val_fn=False,
-            model_factory=lambda c: trackers.make(name, **tracker_config(name, "slim")),
+        return train_slim_tracker(
+            tmp_path / device, name, epochs=1, iters_per_epoch=2, lr=1e-3, device=device
         )
 
     cpu, cuda = run("cpu"), run("cuda")

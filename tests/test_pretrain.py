@@ -137,29 +137,10 @@ def test_train_command_rejects_bad_flags_before_training(tmp_path, capsys):
 def test_resume_exact_with_a_real_tracker(tmp_path):
     """The same kill-and-resume equality with P2B (slim widths), whose backbone samples points
     with its own generator."""
-    trackers = pytest.importorskip("trackers")
-    from test_pretrain_support import fake_tracklets
-
-    from training.config import tracker_config
-    from training.samples import TrackingSamples
+    from test_pretrain_support import train_slim_tracker
 
     def run(out, epochs, resume=False):
-        cfg = tiny_config(
-            out,
-            epochs=epochs,
-            batch_size=2,
-            iters_per_epoch=1,
-            weighting="decorrelation",
-            model_size="slim",
-        )
-        data = TrackingSamples(fake_tracklets(n=2, frames=4), candidates_per_frame=1)
-        return train(
-            cfg,
-            resume=resume,
-            train_data=data,
-            val_fn=False,
-            model_factory=lambda c: trackers.make("p2b", **tracker_config("p2b", "slim")),
-        )
+        return train_slim_tracker(out, "p2b", resume=resume, epochs=epochs, iters_per_epoch=1)
 
     run(tmp_path / "full", 2)
     run(tmp_path / "cut", 1)

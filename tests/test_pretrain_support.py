@@ -1,5 +1,6 @@
 """Stand-ins for the trainer tests: a tiny tracker with the trackers' forward/loss interface and
-small synthetic tracklets (no dependence on the real trackers or the synthetic world).
+small synthetic tracklets (no dependence on the synthetic world), and one helper that runs the
+real trainer on a real tracker over them.
 
 Also runnable under ``torchrun`` (the DDP test launches it): ``python -m torch.distributed.run
 --nproc_per_node 2 tests/test_pretrain_support.py OUT WEIGHTING``.
@@ -123,6 +124,27 @@ def tiny_config(out, **kw):
     )
     base.update(kw)
     return TrainConfig(**base).validate()
+
+
+def train_slim_tracker(out, name: str = "p2b", *, resume: bool = False, **config):
+    """The real trainer on tracker ``name`` at slim widths with decorrelation weighting, batch 2,
+    over two fake tracklets of 4 frames; ``config`` overrides :func:`tiny_config`'s keys."""
+    import trackers
+    from training.config import tracker_config
+    from training.pretrain import train
+    from training.samples import TrackingSamples
+
+    cfg = tiny_config(
+        out, tracker=name, batch_size=2, weighting="decorrelation", model_size="slim", **config
+    )
+    data = TrackingSamples(fake_tracklets(n=2, frames=4), candidates_per_frame=1)
+    return train(
+        cfg,
+        resume=resume,
+        train_data=data,
+        val_fn=False,
+        model_factory=lambda c: trackers.make(name, **tracker_config(name, "slim")),
+    )
 
 
 if __name__ == "__main__":  # the DDP run of test_pretrain_ddp
