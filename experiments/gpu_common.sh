@@ -25,8 +25,8 @@ fi
 train_u() {  # TRACKER SETTING SIZE WORKERS SECONDS [flags]: the registered -U run from scratch
   local tracker=$1 setting=$2 size=$3 workers=$4 seconds=$5
   shift 5
-  timeout "$seconds" python3 -m training.cli train --tracker "$tracker" --setting "$setting" --weighting none \
-    --dataset synthetic --preset default --model-size "$size" --batch-size 16 \
+  timeout "$seconds" python3 -m training.cli train --tracker "$tracker" --setting "$setting" \
+    --weighting none --dataset synthetic --preset default --model-size "$size" --batch-size 16 \
     --iters-per-epoch 50 --lr 1e-3 --size-jitter 0.3 --ema-decay 0.995 --threads 1 \
     --val-max-tracklets 16 --val-max-frames 40 --seed 0 --device "$DEVICE" \
     --num-workers "$workers" --no-progress "$@" "${SMOKE_FLAGS[@]}"

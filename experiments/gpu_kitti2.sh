@@ -36,8 +36,8 @@ train)
   (
     train_u p2b kitti-2 slim 6 $((DEADLINE - SECONDS - 150)) --epochs 30 \
       --set lr_step_epochs=20 --set val_every=3 --out runs20/p2b-kitti2-u >"$OUT/u30.log" 2>&1
-    train_w p2b kitti-2 slim 6 runs20/p2b-kitti2-u runs20/p2b-kitti2-w $((DEADLINE - SECONDS - 20)) \
-      >"$OUT/w30.log" 2>&1
+    train_w p2b kitti-2 slim 6 runs20/p2b-kitti2-u runs20/p2b-kitti2-w \
+      $((DEADLINE - SECONDS - 20)) >"$OUT/w30.log" 2>&1
   ) &
   if [ "${LONG:-1}" = 1 ]; then
     (
