@@ -45,7 +45,7 @@ tar_runs() {  # DIR [tar flags]: each run directory under DIR as one tar in $OUT
     tar -cf "$OUT/$(basename "$run").tar" "${@:2}" -C "$1" "$(basename "$run")"
   done
 }
-export_weights() {  # RUN NAME...: RUN/NAME.pt's validated weights as tracker file RUN/NAME.safetensors
+export_weights() {  # RUN NAME...: RUN/NAME.pt's validated weights as RUN/NAME.safetensors
   # A papers'-width training checkpoint (weights, EMA, Adam state: ~21 MB) is over the 16 MiB a
   # file may weigh on its way back from the device machine; the tracker file is ~5.5 MB.
   python3 - "$@" <<'PY'

@@ -24,7 +24,8 @@ train)
     (
       run=runs/gpu-kitti1/$tracker-kitti1-$SIZE
       train_u "$tracker" kitti-1 "$SIZE" 4 $((DEADLINE - SECONDS - 150)) --epochs "$EPOCHS" \
-        --set lr_step_epochs=$((EPOCHS * 2 / 3)) --set val_every=10 --out "$run-u" >"$logs/$tracker-u.log" 2>&1
+        --set lr_step_epochs=$((EPOCHS * 2 / 3)) --set val_every=10 --out "$run-u" \
+        >"$logs/$tracker-u.log" 2>&1
       train_w "$tracker" kitti-1 "$SIZE" 4 "$run-u" "$run-w" $((DEADLINE - SECONDS - 45)) \
         >"$logs/$tracker-w.log" 2>&1
     ) &
