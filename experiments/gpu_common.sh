@@ -48,6 +48,7 @@ tar_runs() {  # DIR [tar flags]: each run directory under DIR as one tar in $OUT
 export_weights() {  # RUN NAME...: RUN/NAME.pt's validated weights as RUN/NAME.safetensors
   # A papers'-width training checkpoint (weights, EMA, Adam state: ~21 MB) is over the 16 MiB a
   # file may weigh on its way back from the device machine; the tracker file is ~5.5 MB.
+  # (`pointtrack train --export` writes best-else-last only, and not for a run its deadline cut.)
   python3 - "$@" <<'PY'
 import sys
 from pathlib import Path

@@ -18,11 +18,12 @@ train)
   EPOCHS=${EPOCHS:-48}
   SIZE=${SIZE:-default}
   python3 -c "$WORLD"
-  logs=runs/gpu-kitti1/logs
+  root=runs/gpu-kitti1
+  logs=$root/logs
   mkdir -p "$logs"
   for tracker in p2b bat gpt; do
     (
-      run=runs/gpu-kitti1/$tracker-kitti1-$SIZE
+      run=$root/$tracker-kitti1-$SIZE
       train_u "$tracker" kitti-1 "$SIZE" 4 $((DEADLINE - SECONDS - 150)) --epochs "$EPOCHS" \
         --set lr_step_epochs=$((EPOCHS * 2 / 3)) --set val_every=10 --out "$run-u" \
         >"$logs/$tracker-u.log" 2>&1
@@ -34,10 +35,10 @@ train)
   # The files back from the device machine: at most 8, of 16 MiB each, 64 MiB together (here:
   # six run tars of 5-12 MB and logs.tar).
   for tracker in p2b bat gpt; do
-    export_weights "runs/gpu-kitti1/$tracker-kitti1-$SIZE-u" best last
-    export_weights "runs/gpu-kitti1/$tracker-kitti1-$SIZE-w" best
+    export_weights "$root/$tracker-kitti1-$SIZE-u" best last
+    export_weights "$root/$tracker-kitti1-$SIZE-w" best
   done
-  tar_runs runs/gpu-kitti1 --exclude=*.pt
+  tar_runs "$root" --exclude=*.pt
   tail -n 2 "$logs"/*.log
   ls -la "$OUT"
   ;;
