@@ -26,9 +26,10 @@ from torch import nn
 
 from envs.geometry import box_corners_torch
 from trackers import ops
-from trackers.base import SLIM_BACKBONE, MatchingConfig, MatchingTracker
+from trackers.base import MatchingConfig, MatchingTracker
 from trackers.head import masked_mean, smooth_l1
 from trackers.layers import MLP
+from trackers.p2b import P2B
 from trackers.registry import register
 
 __all__ = ["BAT", "BATConfig", "BoxAwareFusion", "box_cloud"]
@@ -94,22 +95,12 @@ class BAT(MatchingTracker):
     """BAT: backbone, BAFF with Box-Cloud, VoteNet proposal head, Box-Cloud loss."""
 
     config_class = BATConfig
+    # BAT keeps P2B's head, its loss weights and its widths, and adds the Box-Cloud loss
     default_loss_weights: ClassVar[dict[str, float]] = {
-        "vote": 1.0,
-        "seed": 0.2,
-        "objectness": 1.5,
-        "box": 0.2,
+        **P2B.default_loss_weights,
         "box_cloud": 1.0,
     }
-    sizes: ClassVar[dict[str, dict[str, Any]]] = {
-        "default": {},
-        "slim": {
-            "backbone": SLIM_BACKBONE,
-            "hidden_channels": 64,
-            "out_channels": 128,
-            "head": {"vote_channels": 128},
-        },
-    }
+    sizes: ClassVar[dict[str, dict[str, Any]]] = P2B.sizes
 
     def build_fusion(self, in_channels: int) -> tuple[nn.Module, int]:
         cfg = self.config

@@ -143,13 +143,13 @@ def kaiming_init(model: torch.nn.Module) -> None:
                 torch.nn.init.zeros_(module.bias)
 
 
-def default_train_data(cfg: TrainConfig):
-    import trackers
-    from training.samples import TrackingSamples, load_tracklets
+def _config_tracklets(cfg: TrainConfig, split: str) -> tuple[list, str]:
+    """The observed-category tracklets of ``split`` of the data ``cfg`` names, and its root."""
+    from training.samples import load_tracklets
 
     tracklets, _, root = load_tracklets(
         cfg.dataset,
-        "train",
+        split,
         setting=cfg.setting,
         category=cfg.category,
         preset=cfg.preset,
@@ -158,6 +158,14 @@ def default_train_data(cfg: TrainConfig):
         data_root=cfg.data_root,
         version=cfg.nuscenes_version,
     )
+    return tracklets, root
+
+
+def default_train_data(cfg: TrainConfig):
+    import trackers
+    from training.samples import TrackingSamples
+
+    tracklets, root = _config_tracklets(cfg, "train")
     if getattr(trackers.tracker_class(cfg.tracker), "sample_recipe", None) == "motion":
         from training.motion_samples import MotionSamples
 
@@ -207,20 +215,10 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
     from envs.data import class_specific, get_setting
     from envs.tracking_env import TrackingEnv
     from training.evaluate import evaluate, observation_keys_for
-    from training.samples import load_tracklets
 
     st = class_specific(cfg.category) if cfg.category else get_setting(cfg.setting)
-    tracklets, _, _ = load_tracklets(
-        cfg.dataset,
-        "val",
-        setting=cfg.setting,
-        category=cfg.category,
-        preset=cfg.preset,
-        sensor=cfg.sensor,
-        world_seed=cfg.world_seed,
-        data_root=cfg.data_root,
-        version=cfg.nuscenes_version,
-    )  # observed categories only: model selection never sees the unseen ones
+    # observed categories only: model selection never sees the unseen ones
+    tracklets, _ = _config_tracklets(cfg, "val")
     if cfg.val_max_tracklets is not None and len(tracklets) > cfg.val_max_tracklets:
         pick = np.linspace(0, len(tracklets) - 1, cfg.val_max_tracklets).round().astype(int)
         tracklets = [tracklets[i] for i in sorted(set(pick.tolist()))]
