@@ -5,8 +5,14 @@ from __future__ import annotations
 import importlib.util
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
+import torch
+from test_pretrain_support import fake_tracklets
+
+from training.samples import TrackingSamples
 
 
 def _script(name: str):
@@ -49,3 +55,97 @@ def test_epoch_losses_names_a_run_without_a_log(tmp_path):
     empty = _run(tmp_path, "empty", {})
     with pytest.raises(SystemExit, match="no finished epoch yet"):
         script.epoch_rows(empty)
+
+
+class _StayingTracker(torch.nn.Module):
+    """Votes, proposals and the chosen box all at the search frame's origin, yaw 0: every
+    measure of ``vote_diagnostics`` then follows from the ground-truth offsets alone."""
+
+    config = SimpleNamespace(head=SimpleNamespace(positive_radius=0.3))
+
+    def forward(self, batch):
+        b, n = batch["search"].shape[:2]
+        m, p = 32, 8
+        return {
+            "seed_idx": torch.arange(m).expand(b, m),
+            "votes": torch.zeros(b, m, 3),
+            "proposal_centers": torch.zeros(b, p, 3),
+            "proposals": torch.zeros(b, p, 4),
+            "scores": torch.zeros(b, p),
+        }
+
+    def best_action(self, outputs):
+        return outputs["proposals"][:, 0]
+
+
+def test_vote_diagnostics_against_the_ground_truth_offsets():
+    script = _script("vote_diagnostics")
+    data = TrackingSamples(fake_tracklets(n=3, frames=6), candidates_per_frame=3, seed=5)
+    indices = np.arange(0, len(data), 2)
+    result = script.diagnose(_StayingTracker(), data, indices, batch_size=4)
+
+    items = [data[int(i)] for i in indices]
+    offset = np.array([np.linalg.norm(item["search_box"][:3].numpy()) for item in items])
+    yaw = np.array([abs(float(item["search_box"][6])) for item in items])
+    targets = np.array([int(item["search_labels"][:32].sum()) for item in items])
+    assert targets.sum() > 0 and np.ptp(offset) > 0  # the check below is not vacuous
+
+    def median(values):  # torch.median: the lower of the two middle values
+        return float(np.quantile(values, 0.5, method="lower"))
+
+    assert result["samples"] == len(indices)
+    assert result["stay_error_m"] == pytest.approx(median(offset), abs=1e-6)
+    assert result["box_error_m"] == pytest.approx(median(offset), abs=1e-6)
+    assert result["vote_miss_m"] == pytest.approx(median(np.repeat(offset, targets)), abs=1e-6)
+    assert result["no_positive"] == pytest.approx(100 * np.mean(offset >= 0.3))
+    assert result["top_positive"] == pytest.approx(100 * np.mean(offset < 0.3))
+    assert result["yaw_error_deg"] == pytest.approx(np.degrees(median(yaw)), abs=1e-4)
+
+
+def test_vote_diagnostics_correction_is_zero_for_a_tracker_that_stays():
+    script = _script("vote_diagnostics")
+    tracklets = fake_tracklets(n=3, frames=6)
+    tracker = _StayingTracker()
+    fixed = script.samples_for(tracker, tracklets, 5, script.FixedOffsetSamples)
+    indices = np.arange(len(fixed))
+    for axis in (0, 1):
+        # the box it keeps is the search region's centre: the whole offset stays as the error
+        # (up to the search region's yaw noise, a few degrees)
+        assert script.correction(tracker, fixed, indices, axis, 0.8) == pytest.approx(0, abs=0.01)
+    fixed.offset_box_m = (0.5, -0.25)
+    box = fixed[0]["search_box"].numpy()
+    assert box[:2] == pytest.approx([-0.5, 0.25], abs=0.05)  # the offset, in the box's axes
+
+
+def test_motion_breakdown_bins_tracklets_by_speed_and_weights_by_frames():
+    script = _script("motion_breakdown")
+    parked = np.zeros((4, 7))
+    moving = np.zeros((3, 7))
+    moving[:, 0] = [0.0, 0.8, 1.6]  # 0.8 m a frame
+    assert script.mean_step_m(parked) == 0.0
+    assert script.mean_step_m(moving) == pytest.approx(0.8)
+    steps = {"a": 0.0, "b": 0.01, "c": 0.8}
+    report = {
+        "per_tracklet": [
+            {"tracklet": "a", "category": "Van", "frames": 30, "success": 90.0, "precision": 80.0},
+            {"tracklet": "b", "category": "Car", "frames": 10, "success": 50.0, "precision": 40.0},
+            {"tracklet": "c", "category": "Van", "frames": 20, "success": 20.0, "precision": 30.0},
+        ]
+    }
+    result = script.breakdown(report, steps)
+    assert list(result) == ["[0, 0.05)", "[0.05, 0.5)", "[0.5, 1.5)", "[1.5, inf)"]
+    static = result["[0, 0.05)"]
+    assert (static["tracklets"], static["frames"]) == (2, 40)
+    assert static["success"] == pytest.approx((90 * 30 + 50 * 10) / 40)
+    assert static["precision"] == pytest.approx((80 * 30 + 40 * 10) / 40)
+    assert result["[0.5, 1.5)"]["success"] == pytest.approx(20.0)
+    assert result["[0.05, 0.5)"]["tracklets"] == 0 and np.isnan(result["[0.05, 0.5)"]["success"])
+    vans = script.breakdown(report, steps, category="Van")
+    assert vans["[0, 0.05)"]["frames"] == 30 and vans["[0, 0.05)"]["success"] == 90.0
+
+
+def test_motion_breakdown_names_a_tracklet_missing_from_the_data():
+    script = _script("motion_breakdown")
+    report = {"per_tracklet": [{"tracklet": "0007/3", "frames": 5, "success": 1, "precision": 1}]}
+    with pytest.raises(KeyError, match="0007/3"):
+        script.breakdown(report, {"0001/1": 0.0})
