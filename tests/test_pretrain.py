@@ -181,6 +181,14 @@ def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
         trainer(path, tracker="bat")
     with pytest.raises(TrainingError, match="another tracker config"):
         trainer(path, tracker_config={"hidden_channels": 32})
+    # what only labels or weighs the loss may differ: the weights fit the same architecture
+    relabelled = trainer(path, tracker_config={"head": {"positive_fraction": 0.2}}).model
+    assert relabelled.config.head.positive_fraction == 0.2
+    assert relabelled.config.head.vote_channels == source.config.head.vote_channels  # merged
+    for k, v in source.state_dict().items():
+        assert torch.equal(relabelled.state_dict()[k], v), k
+    with pytest.raises(TrainingError, match="another tracker config.*cluster_radius"):
+        trainer(path, tracker_config={"head": {"cluster_radius": 0.5}})
     with pytest.raises(TrainingError, match="no such checkpoint"):
         trainer(tmp_path / "missing.safetensors")
     with pytest.raises(ConfigError, match="init_weights"):

@@ -131,6 +131,28 @@ def test_proposal_labels_and_box_target():
     assert losses["objectness"].item() == pytest.approx(expected.item(), rel=1e-4)
 
 
+def test_size_relative_proposal_labels():
+    """``positive_fraction f``: radii max(0.3, f r) / max(0.6, 2 f r), r half the xy diagonal,
+    per sample; f = 0 is the fixed rule."""
+    from trackers.head import HeadConfig, proposal_labels
+
+    # a 6 x 2.5 m van (r = 3.25 m) and a 0.8 x 0.6 m pedestrian (r = 0.5 m); offsets along x
+    boxes = torch.tensor([[0.0, 0, 0, 6.0, 2.5, 2, 0], [1.0, 2, 0, 0.8, 0.6, 1.7, 0.3]])
+    offsets = torch.tensor([0.2, 0.5, 0.7, 1.0, 1.4])
+    centres = boxes[:, None, :3] + offsets[None, :, None] * torch.tensor([1.0, 0, 0])
+    fixed_pos, fixed_counted = proposal_labels(centres, boxes, HeadConfig())
+    expect_pos = [1, 0, 0, 0, 0]
+    expect_counted = [1, 0, 1, 1, 1]  # ignored within (0.3, 0.6]
+    assert fixed_pos.tolist() == [expect_pos, expect_pos]
+    assert fixed_counted.tolist() == [expect_counted, expect_counted]
+    pos, counted = proposal_labels(centres, boxes, HeadConfig(positive_fraction=0.2))
+    # van: 0.2 * 3.25 = 0.65 m positive, 1.3 m negative; pedestrian: 0.1 / 0.2 -> 0.3 / 0.6
+    assert pos.tolist() == [[1, 1, 0, 0, 0], expect_pos]
+    assert counted.tolist() == [[1, 1, 0, 0, 1], expect_counted]
+    with pytest.raises(ValueError, match="positive_fraction"):
+        HeadConfig(positive_fraction=-0.1)
+
+
 def p2b_naive(fusion, t_xyz, t_feat, s_feat):
     """P2B's TFA as written: the explicit ``(B, M_T, M_S, 1 + 3 + D)`` concatenation."""
     cos = fusion.cosine(t_feat, s_feat)

@@ -20,7 +20,8 @@ the box loss); ``outputs["proposals"]`` is always in radians.
 Losses (per sample, ``(B,)``; Open3DSOT's definitions, normalised per sample instead of per batch):
 ``vote`` smooth-L1 of vote xyz to the GT centre on target seeds; ``seed`` BCE of seed scores;
 ``objectness`` BCE (``pos_weight`` 2) of proposal scores, positive when the cluster centre is
-within 0.3 m of the GT centre, negative beyond 0.6 m, ignored between; ``box`` smooth-L1 of
+within 0.3 m of the GT centre, negative beyond 0.6 m, ignored between (:func:`proposal_labels`;
+``positive_fraction > 0`` widens both radii for large boxes); ``box`` smooth-L1 of
 ``(x, y, z, yaw)`` to the GT box on positive proposals.
 """
 
@@ -36,7 +37,7 @@ from torch import nn
 from trackers import ops
 from trackers.layers import MLP, grouped_max
 
-__all__ = ["HeadConfig", "VotingHead", "head_losses", "smooth_l1"]
+__all__ = ["HeadConfig", "VotingHead", "head_losses", "proposal_labels", "smooth_l1"]
 
 
 @dataclass
@@ -50,6 +51,9 @@ class HeadConfig:
     yaw_unit: str = "deg"
     positive_radius: float = 0.3
     negative_radius: float = 0.6
+    # > 0: the radii grow to f (positive) and 2 f (negative) times half the box's xy diagonal
+    # where that is larger (a size-relative label; 0 = the papers' fixed radii)
+    positive_fraction: float = 0.0
     objectness_pos_weight: float = 2.0
 
     def __post_init__(self) -> None:
@@ -59,6 +63,10 @@ class HeadConfig:
             raise ValueError("head: num_proposals, cluster_votes, cluster_radius must be positive")
         if not 0 < self.positive_radius <= self.negative_radius:
             raise ValueError("head: need 0 < positive_radius <= negative_radius")
+        if not self.positive_fraction >= 0:
+            raise ValueError(
+                f"head: positive_fraction must be >= 0, got {self.positive_fraction!r}"
+            )
 
 
 class VotingHead(nn.Module):
@@ -122,6 +130,25 @@ def masked_mean(values: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (values * mask).sum(dims) / (mask.sum(dims) + 1e-6)
 
 
+def proposal_labels(
+    proposal_centers: torch.Tensor, search_box: torch.Tensor, config: HeadConfig
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(positive, counted)``, each ``(B, P)`` 0/1: proposals whose centre ``(B, P, 3)`` is
+    within the positive radius of the GT centre (``search_box (B, 7)``), and those that enter
+    the objectness loss (positive, or beyond the negative radius). The radii are
+    ``config.positive_radius`` / ``negative_radius``, or ``f`` / ``2 f`` times half the box's xy
+    diagonal where larger (``f = config.positive_fraction``)."""
+    dist = (proposal_centers - search_box[:, None, :3]).square().sum(-1).add(1e-6).sqrt()
+    positive_r, negative_r = config.positive_radius, config.negative_radius
+    if config.positive_fraction > 0:
+        half_diagonal = 0.5 * torch.hypot(search_box[:, 3], search_box[:, 4])[:, None]  # (B, 1)
+        scaled = config.positive_fraction * half_diagonal
+        positive_r = scaled.clamp_min(positive_r)
+        negative_r = (2 * scaled).clamp_min(negative_r)
+    positive = (dist < positive_r).float()
+    return positive, positive + (dist > negative_r).float()
+
+
 def head_losses(
     outputs: dict[str, torch.Tensor],
     search_box: torch.Tensor,
@@ -139,10 +166,11 @@ def head_losses(
     seed = F.binary_cross_entropy_with_logits(
         outputs["seed_logits"], seed_labels, reduction="none"
     ).mean(-1)
-    dist = (outputs["proposal_centers"] - centre).square().sum(-1).add(1e-6).sqrt()  # (B, P)
-    positive = (dist < config.positive_radius).float()
-    counted = positive + (dist > config.negative_radius).float()
-    pos_weight = torch.tensor(config.objectness_pos_weight, device=dist.device, dtype=dist.dtype)
+    centres = outputs["proposal_centers"]
+    positive, counted = proposal_labels(centres, search_box, config)
+    pos_weight = torch.tensor(
+        config.objectness_pos_weight, device=centres.device, dtype=centres.dtype
+    )
     obj = F.binary_cross_entropy_with_logits(
         outputs["scores"], positive, reduction="none", pos_weight=pos_weight
     )

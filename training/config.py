@@ -31,12 +31,20 @@ __all__ = [
 
 def tracker_config(tracker: str, model_size: str = "default", extra: dict | None = None) -> dict:
     """The kwargs of ``trackers.make(tracker, ...)`` for a model size (the tracker class's
-    ``sizes``, :func:`trackers.size_config`), updated by ``extra``."""
+    ``sizes``, :func:`trackers.size_config`), updated by ``extra``: nested dicts merge, so
+    ``{"head": {"positive_fraction": 0.2}}`` keeps the size's other head fields."""
     import trackers
 
-    base = trackers.size_config(tracker, model_size)
-    base.update(extra or {})
-    return base
+    return _merged(trackers.size_config(tracker, model_size), extra or {})
+
+
+def _merged(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            value = _merged(out[key], value)
+        out[key] = value
+    return out
 
 
 WEIGHTINGS = ("none", "decorrelation", "sam")

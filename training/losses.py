@@ -74,12 +74,12 @@ def loss_counts(
 ) -> dict[str, torch.Tensor]:
     """The element counts ``c_ik (B,)`` of every loss term of a matching tracker (P2B, BAT,
     GPT: the masks of :func:`trackers.head.head_losses` and the trackers' extra terms)."""
+    from trackers.head import proposal_labels
+
     seed_labels = torch.gather(targets["search_labels"].float(), 1, outputs["seed_idx"])
-    centre = targets["search_box"][:, None, :3].float()
-    dist = (outputs["proposal_centers"] - centre).square().sum(-1).add(1e-6).sqrt()  # (B, P)
-    head = model.config.head
-    positive = (dist < head.positive_radius).float()
-    counted = positive + (dist > head.negative_radius).float()
+    positive, counted = proposal_labels(
+        outputs["proposal_centers"], targets["search_box"].float(), model.config.head
+    )
     b = seed_labels.shape[0]
     counts = {
         "vote": seed_labels.sum(1),

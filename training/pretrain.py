@@ -143,6 +143,25 @@ def kaiming_init(model: torch.nn.Module) -> None:
                 torch.nn.init.zeros_(module.bias)
 
 
+LOSS_ONLY_HEAD_FIELDS = (
+    "positive_radius",
+    "negative_radius",
+    "positive_fraction",
+    "objectness_pos_weight",
+)
+"""The ``HeadConfig`` fields that only label and weigh the training loss."""
+
+
+def architecture_config(config: dict[str, Any]) -> dict[str, Any]:
+    """A tracker config (``trackers.config.config_to_dict``) without what only shapes the
+    loss (``loss_weights``, :data:`LOSS_ONLY_HEAD_FIELDS`): weights move between two trackers
+    whose architecture configs are equal (``init_weights`` may start a run with other labels)."""
+    kept = {k: v for k, v in config.items() if k != "loss_weights"}
+    if isinstance(kept.get("head"), dict):
+        kept["head"] = {k: v for k, v in kept["head"].items() if k not in LOSS_ONLY_HEAD_FIELDS}
+    return kept
+
+
 def _config_tracklets(cfg: TrainConfig, split: str) -> tuple[list, str]:
     """The observed-category tracklets of ``split`` of the data ``cfg`` names, and its root."""
     from training.samples import load_tracklets
@@ -390,7 +409,9 @@ class Trainer:
         except (ValueError, FileNotFoundError, CheckpointError) as exc:
             raise TrainingError(f"init_weights={source!r}: {exc}") from exc
         details = config_differences(
-            config_to_dict(start.config), config_to_dict(self.model.config), "run"
+            architecture_config(config_to_dict(start.config)),
+            architecture_config(config_to_dict(self.model.config)),
+            "run",
         )
         if details:
             raise TrainingError(f"init_weights={source!r} has another tracker config ({details})")
