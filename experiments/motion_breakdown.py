@@ -5,8 +5,8 @@ the pooled OPE score of the bin's frames: Success and Precision are means over f
 
     pointtrack eval --tracker previous_box bat-kitti1-u --dataset synthetic --preset default \\
         --seed 1 --split train --setting kitti-1 --categories Van --out runs/van-w1
-    python experiments/motion_breakdown.py runs/van-w1/report.json --preset default --seed 1 \\
-        --split train --setting kitti-1
+    python experiments/motion_breakdown.py runs/van-w1/report.json --preset default \\
+        --world-seed 1 --split train --setting kitti-1
 
 A target that does not move (a parked car seen from a standing sensor) is where
 ``previous_box`` is perfect; the static bin shows how much a learned tracker gives away there.
@@ -77,7 +77,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("report", type=Path, help="report.json of pointtrack eval --out")
     parser.add_argument("--preset", default="default")
-    parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
+    parser.add_argument("--world-seed", type=int, default=0, help="synthetic world seed")
     parser.add_argument("--split", default="test")
     parser.add_argument("--setting", default="kitti-1")
     parser.add_argument("--by-category", action="store_true", help="a row per category too")
@@ -90,7 +90,7 @@ def main() -> None:
         args.split,
         setting=args.setting,
         preset=args.preset,
-        world_seed=args.seed,
+        world_seed=args.world_seed,
         trained_only=False,
     )
     steps = {t.tracklet_id: mean_step_m(t.boxes) for t in tracklets}
