@@ -4,7 +4,8 @@ checkpoints on fixed observations (toy batches, padded clouds, env observations,
 The six -U / -W entries were recorded from main at commit cfcfd29 (before the tracker refactor
 of issue 21); the entries of the checkpoints shipped since (``LATER``: the RL and DRCT
 fine-tunes, session 16; the kitti-2 P2B checkpoints, session 20) were added from the code of
-their time, so that
+their time, and ``bat-kitti1-u`` was re-recorded when its file was replaced (session 23), so
+that
 ``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs stay
 bit-identical. Run: ``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python
 tests/data/record_tracker_reference.py [NAME ...]`` (names given: only their entries are
