@@ -12,9 +12,10 @@ search region; the search offset is perturbed as in training):
 
 * ``vote_miss_m``: median distance (m) from a target seed's vote to the box centre, pooled
   over every target seed of every sample;
-* ``no_positive``: % of samples where no proposal centre lies within the head's positive
-  radius (0.3 m in the papers), so the objectness loss has no positive to learn from;
-* ``top_positive``: % of samples whose best-scored proposal centre is within that radius;
+* ``no_positive``: % of samples where no proposal is a positive of the head's loss
+  (``trackers.head.proposal_labels``: within 0.3 m in the papers), so the objectness and box
+  terms have no positive to learn from;
+* ``top_positive``: % of samples whose best-scored proposal is such a positive;
 * ``box_error_m`` / ``yaw_error_deg``: median centre distance and absolute yaw error of the
   best-scored box (the action the tracker would take);
 * ``stay_error_m``: median centre distance of not moving (the search region's centre, i.e.
@@ -35,8 +36,9 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from trackers.head import proposal_labels
 from training.evaluate import load_tracker
-from training.samples import TrackingSamples, load_tracklets
+from training.samples import BATCH_KEYS, TrackingSamples, load_tracklets
 
 
 class FixedOffsetSamples(TrackingSamples):
@@ -86,7 +88,7 @@ def correction(
         offset[axis] = sign * offset_m
         data.offset_box_m = (offset[0], offset[1])
         sample = _batch(data, indices)
-        out = tracker({k: sample[k] for k in ("template", "search", "size", "motion")})
+        out = tracker({k: sample[k] for k in BATCH_KEYS})
         action = tracker.best_action(out)
         box = sample["search_box"].float()
         # the search frame is the offset box's (yaw noise aside): its axes are the box's
@@ -100,22 +102,20 @@ def diagnose(
 ) -> dict[str, float]:
     """The module docstring's measures over ``data[indices]`` (eval-mode forward)."""
     tracker.eval()
-    radius = tracker.config.head.positive_radius
     misses, no_positive, top_positive, box_error, yaw_error, stay = [], [], [], [], [], []
     for start in range(0, len(indices), batch_size):
         sample = _batch(data, indices[start : start + batch_size])
-        batch = {k: sample[k] for k in ("template", "search", "size", "motion")}
-        out = tracker(batch)
+        out = tracker({k: sample[k] for k in BATCH_KEYS})
         box = sample["search_box"].float()  # (B, 7) in the search frame
         centre = box[:, None, :3]
         labels = torch.gather(sample["search_labels"].float(), 1, out["seed_idx"]) > 0.5
         miss = (out["votes"] - centre).norm(dim=-1)  # (B, M)
         misses.append(miss[labels])
-        proposal_dist = (out["proposal_centers"] - centre).norm(dim=-1)  # (B, P)
-        no_positive.append((proposal_dist.min(dim=1).values >= radius).float())
+        positive, _ = proposal_labels(out["proposal_centers"], box, tracker.config.head)
+        no_positive.append(1.0 - positive.amax(dim=1))
         best = out["scores"].argmax(dim=1)
         rows = torch.arange(len(best))
-        top_positive.append((proposal_dist[rows, best] < radius).float())
+        top_positive.append(positive[rows, best])
         action = out["proposals"][rows, best]  # (B, 4): x, y, z, yaw (rad)
         box_error.append((action[:, :3] - box[:, :3]).norm(dim=-1))
         stay.append(box[:, :3].norm(dim=-1))

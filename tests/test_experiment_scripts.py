@@ -12,6 +12,7 @@ import pytest
 import torch
 from test_pretrain_support import fake_tracklets
 
+from trackers.head import HeadConfig
 from training.samples import TrackingSamples
 
 
@@ -61,7 +62,7 @@ class _StayingTracker(torch.nn.Module):
     """Votes, proposals and the chosen box all at the search frame's origin, yaw 0: every
     measure of ``vote_diagnostics`` then follows from the ground-truth offsets alone."""
 
-    config = SimpleNamespace(head=SimpleNamespace(positive_radius=0.3))
+    config = SimpleNamespace(head=HeadConfig())  # the papers' 0.3 m positive radius
 
     def forward(self, batch):
         b, n = batch["search"].shape[:2]
