@@ -30,6 +30,8 @@ from collections.abc import Callable, Mapping
 
 import torch
 
+from trackers.head import proposal_labels
+
 __all__ = ["LOSS_REDUCTIONS", "loss_counts", "pooled", "pooled_objective"]
 
 LOSS_REDUCTIONS = ("sample", "pooled")
@@ -74,8 +76,6 @@ def loss_counts(
 ) -> dict[str, torch.Tensor]:
     """The element counts ``c_ik (B,)`` of every loss term of a matching tracker (P2B, BAT,
     GPT: the masks of :func:`trackers.head.head_losses` and the trackers' extra terms)."""
-    from trackers.head import proposal_labels
-
     seed_labels = torch.gather(targets["search_labels"].float(), 1, outputs["seed_idx"])
     positive, counted = proposal_labels(
         outputs["proposal_centers"], targets["search_box"].float(), model.config.head
