@@ -704,12 +704,24 @@ class Trainer:
         self.model.train()
         return result
 
-    def close(self) -> None:
-        """Destroy the process group this trainer created: left to the interpreter's exit,
-        gloo's threads can race the teardown and abort a rank after a finished run."""
-        if self.owns_process_group:
-            self.pg.destroy_process_group()
-            self.owns_process_group = False
+    def close(self, finished: bool = True) -> None:
+        """Release the process group this trainer created while the interpreter is whole: left
+        to its exit, gloo's threads can race the teardown and abort a rank (SIGABRT,
+        'terminate called without an active exception') after a finished run. The DDP wrapper
+        goes first, because its reducer keeps the group alive past ``destroy_process_group``;
+        after a finished run a barrier keeps a rank from tearing down while its peer still
+        talks to it (after a failure the peers may never reach it, so there is none)."""
+        if not self.owns_process_group:
+            return
+        import gc
+
+        self.net = self.model
+        gc.collect()
+        if finished:
+            self.pg.barrier()
+        self.pg.destroy_process_group()
+        self.pg = None
+        self.owns_process_group = False
 
     def run(self, resume: bool = False) -> TrainResult:
         cfg = self.cfg
@@ -870,6 +882,9 @@ def train(
         check_run_dir(cfg.out, resume)  # before any data is built: refusals come in a second
     trainer = Trainer(cfg, model_factory=model_factory, train_data=train_data, val_fn=val_fn)
     try:
-        return trainer.run(resume=resume)
-    finally:
-        trainer.close()
+        result = trainer.run(resume=resume)
+    except BaseException:
+        trainer.close(finished=False)
+        raise
+    trainer.close()
+    return result
