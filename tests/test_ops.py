@@ -273,3 +273,43 @@ def test_ball_query_grid_cells_find_every_hit(seed):
     dense = ops._ball_dense(radius, k, xyz, centres)
     grid = ops._ball_grid(radius, k, xyz, centres)
     assert torch.equal(dense[0], grid[0]) and torch.equal(dense[1], grid[1])
+
+
+def _chamfer_ref(a, am, b, bm):
+    """Loops over the masked points, float64."""
+    out = []
+    rows = zip(a.double().numpy(), am.numpy(), b.double().numpy(), bm.numpy(), strict=True)
+    for pa, ma, pb, mb in rows:
+        sa, sb = pa[ma], pb[mb]
+        if not len(sa) or not len(sb):
+            out.append(np.inf)
+            continue
+        a_to_b = np.mean([min(np.linalg.norm(p - q) for q in sb) for p in sa])
+        b_to_a = np.mean([min(np.linalg.norm(q - p) for p in sa) for q in sb])
+        out.append(0.5 * (a_to_b + b_to_a))
+    return np.array(out)
+
+
+def test_chamfer_distance_matches_brute_force_with_masks():
+    a, b = _points(3, 40, seed=1), _points(3, 30, seed=2, scale=2.0)
+    g = torch.Generator().manual_seed(3)
+    am, bm = torch.rand(3, 40, generator=g) < 0.6, torch.rand(3, 30, generator=g) < 0.5
+    bm[2] = False  # an empty set: inf
+    got = ops.chamfer_distance(a, am, b, bm).numpy()
+    want = _chamfer_ref(a, am, b, bm)
+    assert np.isinf(got[2]) and np.isinf(want[2])
+    np.testing.assert_allclose(got[:2], want[:2], rtol=1e-5)
+    # masked-out points may hold anything: moving them changes nothing
+    far = torch.where(am[..., None], a, torch.full_like(a, 1e3))
+    np.testing.assert_array_equal(ops.chamfer_distance(far, am, b, bm).numpy(), got)
+
+
+def test_chamfer_distance_of_a_repeated_set_and_symmetry():
+    a, b = _points(2, 50, seed=4), _points(2, 20, seed=5)
+    ones_a, ones_b = torch.ones(2, 50, dtype=torch.bool), torch.ones(2, 20, dtype=torch.bool)
+    d = ops.chamfer_distance(a, ones_a, b, ones_b)
+    doubled = torch.cat([b, b], dim=1)  # every point twice: the same set, the same means
+    ones_d = torch.ones(2, 40, dtype=torch.bool)
+    np.testing.assert_allclose(ops.chamfer_distance(a, ones_a, doubled, ones_d), d, rtol=1e-6)
+    np.testing.assert_allclose(ops.chamfer_distance(b, ones_b, a, ones_a), d, rtol=1e-6)
+    assert (ops.chamfer_distance(a, ones_a, a, ones_a) == 0).all()

@@ -610,3 +610,59 @@ def test_folded_batchnorm_cache_follows_weight_updates(toy):
     torch.testing.assert_close(
         replaced, reference_outputs(model, toy[0])["scores"], rtol=0, atol=1e-5
     )
+
+
+def _still_target_observation(seed=0, shift_m=0.0):
+    """A box-frame observation whose search holds the target's crop (the template's two halves:
+    the same car surface, resampled) moved by ``shift_m`` along x, plus ground and clutter."""
+    rng = np.random.default_rng(seed)
+    size = np.array([4.0, 1.8, 1.5], np.float32)
+    surface = rng.uniform(-0.5, 0.5, (60, 3)) * size * [1, 1, 0.8]  # above the ground clearance
+    surface[:, 2] += 0.1
+    template = np.concatenate(
+        [surface[rng.integers(0, 60, 256)], surface[rng.integers(0, 60, 256)]]
+    )
+    ground = np.c_[rng.uniform(-4, 4, (200, 2)), np.full(200, -0.75)]  # at the box's bottom
+    clutter = rng.uniform(-5, 5, (300, 3)) + [0, 0, 3]  # outside the box
+    target = surface + [shift_m, 0, 0]
+    cloud = np.concatenate([target, ground, clutter])
+    search = cloud[rng.integers(0, len(cloud), 1024)]
+    return {
+        "template": template.astype(np.float32),
+        "search": search.astype(np.float32),
+        "size": size,
+        "motion": np.zeros(4, np.float32),
+    }
+
+
+def test_still_target_test_keeps_the_box_only_where_the_target_stayed():
+    moving_tracker = tiny("p2b")
+    hold = tiny("p2b", hold_chamfer_m=0.1)
+    hold.load_state_dict(moving_tracker.state_dict())
+    still, moved = _still_target_observation(0), _still_target_observation(0, shift_m=0.6)
+    np.testing.assert_array_equal(hold.act(still), np.zeros(4, np.float32))
+    np.testing.assert_array_equal(hold.act(moved), moving_tracker.act(moved))
+    batch = {k: np.stack([still[k], moved[k]]) for k in still}
+    np.testing.assert_array_equal(
+        hold.act(batch), np.stack([np.zeros(4), moving_tracker.act(moved)])
+    )
+    assert hold.keeps_box(prepare_observation(batch)[0]).tolist() == [True, False]
+    # the box lost to static background: the previous crop matches, the first crop does not
+    other = _still_target_observation(1)["template"][:256]  # another object's first crop
+    lost = dict(still, template=np.concatenate([other, still["template"][256:]]))
+    assert not hold.keeps_box(prepare_observation(lost)[0]).item()
+    # too few points to decide
+    sparse = dict(still, template=np.zeros_like(still["template"]))
+    sparse["template"][:, :] = still["template"][0]
+    sparse["template"][:4] = still["template"][1:5]
+    assert hold.keeps_box(prepare_observation(sparse)[0]).item() is False
+
+
+def test_still_target_test_checks_its_inputs():
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="hold_chamfer_m"):
+            tiny("p2b", hold_chamfer_m=bad)
+    tracker = tiny("bat", hold_chamfer_m=0.1)
+    tracker.env_options = {"template_mode": "first_and_previous_merged"}
+    with pytest.raises(ValueError, match="template_mode 'first_and_previous_merged'"):
+        tracker.act(_still_target_observation(1))

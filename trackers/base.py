@@ -22,7 +22,8 @@
   ``a_max = (5, 5, 3, pi)``); no move for an all-zero (empty) template or search; eval-mode
   ``no_grad`` forwards (the module's train/eval mode is restored afterwards). It is built from
   hooks a tracker of another kind overrides (M2-Track does): :meth:`Tracker.prepare`,
-  :meth:`Tracker.best_action`, :meth:`Tracker.empty_observations`; RL fine-tuning
+  :meth:`Tracker.best_action`, :meth:`Tracker.empty_observations`, :meth:`Tracker.keeps_box`
+  (where the box stays and the network does not run); RL fine-tuning
   (:mod:`training.rl`) also reads :meth:`Tracker.summary_features` and ``train_parts``.
 
 :class:`MatchingTracker` outputs ``Z (B, M_S, D)`` the fused search features, ``proposals``,
@@ -58,6 +59,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from envs.observation import TEMPLATE_SCALE
 from trackers import ops
 from trackers.backbone import Backbone, BackboneConfig
 from trackers.config import config_from_dict, config_to_dict
@@ -109,12 +111,33 @@ class TrackerConfig:
         self.loss_weights = {str(k): float(v) for k, v in self.loss_weights.items()}
 
 
+#: Fewest points in a crop for the still-target test to decide anything.
+HOLD_MIN_POINTS = 5
+#: The still-target test leaves out points this close above the box's bottom (m): the ground.
+HOLD_GROUND_CLEARANCE_M = 0.2
+
+
 @dataclass
 class MatchingConfig(TrackerConfig):
-    """Hyper-parameters of a matching tracker's backbone and voting head."""
+    """Hyper-parameters of a matching tracker's backbone and voting head, and of its
+    still-target test: with ``hold_chamfer_m > 0`` the tracker keeps the reference box (action
+    0) where the current points inside it (scaled 1.25) lie within ``hold_chamfer_m`` metres
+    (symmetric Chamfer distance) of the template's crops (:meth:`MatchingTracker.keeps_box`):
+    the target has not moved against the sensor. Not in the papers: the matching head alone
+    lets a parked car's box slide along it (docs/checkpoints.md, "Holding still targets").
+    0 (default) is off."""
 
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     head: HeadConfig = field(default_factory=HeadConfig)
+    hold_chamfer_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not (math.isfinite(self.hold_chamfer_m) and self.hold_chamfer_m >= 0):
+            raise ValueError(
+                f"hold_chamfer_m = {self.hold_chamfer_m!r}: expected a finite distance >= 0 "
+                f"(metres; 0 turns the still-target test off)"
+            )
 
 
 def prepare_observation(
@@ -320,6 +343,11 @@ class Tracker(nn.Module):
         search): the tracker does not move there."""
         return (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(1)
 
+    def keeps_box(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """``(B,)`` True where :meth:`act` keeps the reference box (action 0) without running
+        the network: by default the :meth:`empty_observations`."""
+        return self.empty_observations(batch)
+
     def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """One feature vector per sample ``(B, summary_channels)`` for heads that read the
         tracker's state (the RL critic): :meth:`features` ``(B, M, D)`` max- and mean-pooled
@@ -337,12 +365,17 @@ class Tracker(nn.Module):
         """:meth:`best_action` as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``
         (an empty batch -> an empty ``(0, 4)`` array)."""
         batch, single = self.prepare(obs)
-        if batch[self.point_keys[0]].shape[0] == 0:
+        b = batch[self.point_keys[0]].shape[0]
+        if b == 0:
             return np.zeros((0, 4), dtype=np.float32)
-        out = self.eval_forward(batch)
-        action = self.best_action(out)
-        empty = self.empty_observations(batch)
-        action = torch.where(empty[:, None], torch.zeros_like(action), action)
+        keep = self.keeps_box(batch)
+        action = torch.zeros(b, 4, device=self.device)
+        if not keep.all():  # the network runs on the observations it decides
+            moving = ~keep
+            out = self.eval_forward(
+                {k: v[moving] if _batched(v, b) else v for k, v in batch.items()}
+            )
+            action[moving] = self.best_action(out).to(action.dtype)
         action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
         a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
         action = torch.maximum(torch.minimum(action, a_max), -a_max)
@@ -381,6 +414,49 @@ class MatchingTracker(Tracker):
     def summary_channels(self) -> int:
         """``2 D``: ``Z (B, M_S, D)`` max- and mean-pooled."""
         return 2 * self.fused_channels
+
+    def keeps_box(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """The empty observations and, with ``config.hold_chamfer_m > 0``, the still targets
+        ``(B,)`` bool: the search points inside the reference box scaled 1.25 (the template's
+        crop) lie within ``hold_chamfer_m`` (:func:`trackers.ops.chamfer_distance`) of both
+        template crops, the previous frame's (it has not moved) and the first frame's (the box
+        is still on the target, not on background it lost it to). Points less than
+        :data:`HOLD_GROUND_CLEARANCE_M` above the box's bottom are left out (ground the crops
+        share whether or not the target moves), and a crop of fewer than
+        :data:`HOLD_MIN_POINTS` points decides nothing."""
+        keep = self.empty_observations(batch)
+        if self.config.hold_chamfer_m <= 0:
+            return keep
+        first, previous = self.template_crops(batch["template"])  # (B, P, 3) each
+        size, search = batch["size"], batch["search"]
+        floor = -size[:, None, 2] / 2 + HOLD_GROUND_CLEARANCE_M  # (B, 1)
+
+        def above_ground(points: torch.Tensor) -> torch.Tensor:  # zero rows: padding
+            return (points != 0).any(-1) & (points[..., 2] > floor)
+
+        half = size[:, None, :] * (TEMPLATE_SCALE / 2)
+        in_box = (search.abs() <= half).all(-1) & above_ground(search)
+        still = in_box.sum(1) >= HOLD_MIN_POINTS
+        for crop in (previous, first):
+            mask = above_ground(crop)
+            distance = ops.chamfer_distance(search, in_box, crop, mask)
+            still &= (distance < self.config.hold_chamfer_m) & (mask.sum(1) >= HOLD_MIN_POINTS)
+        return keep | still
+
+    def template_crops(self, template: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first and the previous frame's crops ``(B, 256, 3)`` of ``template (B, 512,
+        3)``, laid out by the env's ``template_mode`` ``"first_and_previous"`` (the default; see
+        :attr:`env_options`); other modes do not keep the two apart, and the still-target test
+        refuses them."""
+        mode = self.env_options.get("template_mode", "first_and_previous")
+        if mode != "first_and_previous":
+            raise ValueError(
+                f"{self.name}: hold_chamfer_m needs the first and previous crops apart in the "
+                f"template (template_mode 'first_and_previous'); this tracker's env runs "
+                f"template_mode {mode!r}"
+            )
+        half = template.shape[1] // 2
+        return template[:, :half], template[:, half:]
 
     def build_fusion(
         self, in_channels: int

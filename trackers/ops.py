@@ -8,6 +8,7 @@ integer or comparison based; distances are computed the same way on both).
   independent of the input order), :func:`farthest_point_sample`;
 * neighbourhoods: :func:`ball_query` (PointNet++ semantics; :func:`ball_query_pairs` lists its
   real hits), :func:`knn` (any dimension: coordinates or features), :func:`pairwise_sqdist`;
+* set distances: :func:`chamfer_distance` between masked point sets;
 * indexing: :func:`gather` / :func:`group`; copies of a point: :func:`first_copy`.
 """
 
@@ -21,6 +22,7 @@ import torch
 __all__ = [
     "ball_query",
     "ball_query_pairs",
+    "chamfer_distance",
     "farthest_point_sample",
     "first_copy",
     "gather",
@@ -345,3 +347,22 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
     # a stable sort gives the documented tie order; topk's tie order is unspecified
     sd, si = torch.sort(d, dim=-1, stable=True)
     return sd[..., :k], si[..., :k]
+
+
+def chamfer_distance(
+    a: torch.Tensor, a_mask: torch.Tensor, b: torch.Tensor, b_mask: torch.Tensor
+) -> torch.Tensor:
+    """Symmetric Chamfer distance (the units of the points) between the masked point sets
+    ``a (B, N, C)`` / ``a_mask (B, N)`` and ``b (B, M, C)`` / ``b_mask (B, M)`` (bool) -> ``(B,)``:
+    the mean over ``a``'s points of the distance to the nearest point of ``b``, and the same
+    from ``b`` to ``a``, averaged (a repeated point counts in its set's mean as often as it
+    appears). ``inf`` where a set is empty.
+    """
+    d = pairwise_sqdist(a, b).sqrt()
+    inf = torch.tensor(float("inf"), dtype=d.dtype, device=d.device)
+    pair = a_mask[:, :, None] & b_mask[:, None, :]
+    d = torch.where(pair, d, inf)
+    a_to_b = torch.where(a_mask, d.amin(dim=2), 0.0).sum(1) / a_mask.sum(1)
+    b_to_a = torch.where(b_mask, d.amin(dim=1), 0.0).sum(1) / b_mask.sum(1)
+    out = 0.5 * (a_to_b + b_to_a)
+    return torch.where(a_mask.any(1) & b_mask.any(1), out, inf)

@@ -329,9 +329,10 @@ class TrackerPolicy(ActorCriticPolicy):
             proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
             weights = torch.softmax(scores / self.temperature, dim=1)
             action = (weights[..., None] * proposals).sum(dim=1)
-        # tracker.act's rules: no move on an empty observation, clip to max_action
-        empty = self.tracker.empty_observations(batch)
-        action = torch.where(empty[:, None], torch.zeros_like(action), action)
+        # tracker.act's rules: no move where it keeps the box (an empty observation, a still
+        # target), clip to max_action
+        keep = self.tracker.keeps_box(batch)
+        action = torch.where(keep[:, None], torch.zeros_like(action), action)
         a_max = self.max_action.to(action.dtype)
         mean = torch.maximum(torch.minimum(action, a_max), -a_max) / a_max
         if not torch.isfinite(mean).all():
