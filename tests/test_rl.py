@@ -68,6 +68,15 @@ def test_predict_equals_rescaled_tracker_act_at_init(data, name):
     assert_predict_equals_act(model, base, obs)
 
 
+def test_predict_keeps_the_box_where_the_tracker_holds_it(data):
+    base = trackers.load("bat-kitti1-u")
+    base.config.hold_chamfer_m = 100.0  # every observation with enough points counts as still
+    model = ppo(data, base)
+    obs = observations(base, data)
+    assert all((base.act(o) == 0).all() for o in obs)
+    assert_predict_equals_act(model, base, obs)
+
+
 def test_batched_and_single_predictions_agree(data):
     base = trackers.load("p2b-kitti1-u")
     model = ppo(data, base)
