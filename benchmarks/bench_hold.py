@@ -1,0 +1,83 @@
+"""Benchmark the still-target test (``MatchingConfig.hold_chamfer_m``) against the network.
+
+Usage: ``python benchmarks/bench_hold.py [--tracker bat-kitti1-u] [--batch 8] [--threads 1]``.
+
+Prints, on ``--batch`` observations of the synthetic ``default`` world's world-1 val split (one
+zero-action step into ``--batch`` tracklets; generated into the cache if needed), best of
+``--repeats``:
+
+- ``keeps_box``: the test alone (two Chamfer distances per observation);
+- ``act`` with the hold off: the network on every observation;
+- ``act`` with the tracker's own hold: the network on the observations not held.
+
+The machine is shared; numbers are best-of-N and the load average is printed with them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+import trackers
+from envs.tracking_env import make_synthetic_env
+from trackers.base import prepare_observation
+
+
+def best_ms(fn: Callable[[], object], repeats: int) -> float:
+    """Best wall time of ``repeats`` calls after one warm-up, milliseconds."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1e3 * min(times)
+
+
+def observations(batch: int) -> dict[str, np.ndarray]:
+    """One zero-action step into each of the first ``batch`` tracklets, stacked ``(B, ...)``."""
+    env = make_synthetic_env(preset="default", seed=1, split="val", setting="kitti-1")
+    obs = []
+    for i in range(batch):
+        env.reset(seed=i, options={"tracklet": i})
+        o, *_ = env.step(np.zeros(4, np.float32))
+        obs.append(o)
+    return {k: np.stack([o[k] for o in obs]) for k in obs[0]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--tracker", default="bat-kitti1-u")
+    parser.add_argument("--batch", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    tracker = trackers.load(args.tracker)
+    hold = tracker.config.hold_chamfer_m
+    batch = observations(args.batch)
+    prepared = prepare_observation(batch)[0]
+    held = int(tracker.keeps_box(prepared).sum())
+    test_ms = best_ms(lambda: tracker.keeps_box(prepared), args.repeats)
+    held_ms = best_ms(lambda: tracker.act(batch), args.repeats)
+    tracker.config.hold_chamfer_m = 0.0
+    plain_ms = best_ms(lambda: tracker.act(batch), args.repeats)
+    b = args.batch
+    print(f"{args.tracker}, B = {b}, {args.threads} thread(s), load {os.getloadavg()[0]:.2f}")
+    rows = [
+        ("keeps_box", test_ms),
+        ("act, hold off", plain_ms),
+        (f"act, hold {hold:.2f} ({held} held)", held_ms),
+    ]
+    for label, ms in rows:
+        print(f"{label:<26} {ms:7.1f} ms ({ms / b:.2f} ms / observation)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
