@@ -358,11 +358,11 @@ def chamfer_distance(
     from ``b`` to ``a``, averaged (a repeated point counts in its set's mean as often as it
     appears). ``inf`` where a set is empty.
     """
-    d = pairwise_sqdist(a, b).sqrt()
-    inf = torch.tensor(float("inf"), dtype=d.dtype, device=d.device)
-    pair = a_mask[:, :, None] & b_mask[:, None, :]
-    d = torch.where(pair, d, inf)
-    a_to_b = torch.where(a_mask, d.amin(dim=2), 0.0).sum(1) / a_mask.sum(1)
-    b_to_a = torch.where(b_mask, d.amin(dim=1), 0.0).sum(1) / b_mask.sum(1)
+    sq = pairwise_sqdist(a, b)
+    inf = torch.tensor(float("inf"), dtype=sq.dtype, device=sq.device)
+    sq = torch.where(a_mask[:, :, None] & b_mask[:, None, :], sq, inf)
+    # the root of the nearest squared distance: sqrt is monotonic, so only (B, N) + (B, M) roots
+    a_to_b = torch.where(a_mask, sq.amin(dim=2).sqrt(), 0.0).sum(1) / a_mask.sum(1)
+    b_to_a = torch.where(b_mask, sq.amin(dim=1).sqrt(), 0.0).sum(1) / b_mask.sum(1)
     out = 0.5 * (a_to_b + b_to_a)
     return torch.where(a_mask.any(1) & b_mask.any(1), out, inf)
