@@ -1,6 +1,8 @@
-"""Benchmark the still-target test (``MatchingConfig.hold_chamfer_m``) against the network.
+"""Benchmark the still-target test and the re-ranking (``MatchingConfig.hold_chamfer_m``,
+``rerank_top_k``) against the network.
 
-Usage: ``python benchmarks/bench_hold.py [--tracker bat-kitti1-u] [--batch 8] [--threads 1]``.
+Usage: ``python benchmarks/bench_hold.py [--tracker bat-kitti1-u] [--batch 8] [--threads 1]
+[--rerank-top-k 4]``.
 
 Prints, on ``--batch`` observations of the synthetic ``default`` world's world-1 val split (one
 zero-action step into ``--batch`` tracklets; generated into the cache if needed), best of
@@ -8,7 +10,10 @@ zero-action step into ``--batch`` tracklets; generated into the cache if needed)
 
 - ``keeps_box``: the test alone (two Chamfer distances per observation);
 - ``act`` with the hold off: the network on every observation;
-- ``act`` with the tracker's own hold: the network on the observations not held.
+- ``act`` with the tracker's own hold: the network on the observations not held;
+- ``choose_action`` with ``--rerank-top-k`` on the network's outputs for every observation: the
+  re-ranking alone (``K + 1`` Chamfer distances per observation);
+- ``act`` with the tracker's own hold and that re-ranking.
 
 The machine is shared; numbers are best-of-N and the load average is printed with them.
 """
@@ -56,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--batch", type=int, default=8)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--rerank-top-k", type=int, default=4)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     tracker = trackers.load(args.tracker)
@@ -64,8 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     prepared = prepare_observation(batch)[0]
     held = int(tracker.keeps_box(prepared).sum())
     test_ms = best_ms(lambda: tracker.keeps_box(prepared), args.repeats)
+    tracker.config.rerank_top_k = 0
     held_ms = best_ms(lambda: tracker.act(batch), args.repeats)
-    tracker.config.hold_chamfer_m = 0.0
+    tracker.config.rerank_top_k = k = args.rerank_top_k
+    with torch.no_grad():
+        outputs = tracker.eval_forward(prepared)
+    rerank_ms = best_ms(lambda: tracker.choose_action(prepared, outputs), args.repeats)
+    both_ms = best_ms(lambda: tracker.act(batch), args.repeats)
+    tracker.config.hold_chamfer_m, tracker.config.rerank_top_k = 0.0, 0
     plain_ms = best_ms(lambda: tracker.act(batch), args.repeats)
     b = args.batch
     print(f"{args.tracker}, B = {b}, {args.threads} thread(s), load {os.getloadavg()[0]:.2f}")
@@ -73,9 +85,11 @@ def main(argv: list[str] | None = None) -> int:
         ("keeps_box", test_ms),
         ("act, hold off", plain_ms),
         (f"act, hold {hold:.2f} ({held} held)", held_ms),
+        (f"choose_action, top {k}", rerank_ms),
+        (f"act, hold {hold:.2f}, top {k}", both_ms),
     ]
     for label, ms in rows:
-        print(f"{label:<26} {ms:7.1f} ms ({ms / b:.2f} ms / observation)")
+        print(f"{label:<28} {ms:7.1f} ms ({ms / b:.2f} ms / observation)")
     return 0
 
 

@@ -187,9 +187,10 @@ def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
     assert relabelled.config.head.vote_channels == source.config.head.vote_channels  # merged
     for k, v in source.state_dict().items():
         assert torch.equal(relabelled.state_dict()[k], v), k
-    # nor does the inference-only still-target test
-    held = trainer(path, tracker_config={"hold_chamfer_m": 0.15}).model
-    assert held.config.hold_chamfer_m == 0.15
+    # nor do the inference-only still-target test and re-ranking
+    inference = {"hold_chamfer_m": 0.15, "rerank_top_k": 4, "rerank_margin_m": 0.02}
+    held = trainer(path, tracker_config=inference).model
+    assert (held.config.hold_chamfer_m, held.config.rerank_top_k) == (0.15, 4)
     with pytest.raises(TrainingError, match="another tracker config.*cluster_radius"):
         trainer(path, tracker_config={"head": {"cluster_radius": 0.5}})
     with pytest.raises(TrainingError, match="no such checkpoint"):

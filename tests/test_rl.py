@@ -78,6 +78,19 @@ def test_predict_keeps_the_box_where_the_tracker_holds_it(data):
     assert_predict_equals_act(model, base, obs)
 
 
+def test_predict_executes_the_re_ranked_box(data):
+    base = trackers.load("bat-kitti1-u")
+    base.config.hold_chamfer_m = 0.0
+    base.config.rerank_top_k = 8
+    model = ppo(data, base)
+    obs = observations(base, data)
+    plain = trackers.load("bat-kitti1-u")
+    plain.config.hold_chamfer_m = 0.0
+    # the re-ranking changes some of these actions, and predict follows it
+    assert any(not np.array_equal(base.act(o), plain.act(o)) for o in obs)
+    assert_predict_equals_act(model, base, obs)
+
+
 def test_batched_and_single_predictions_agree(data):
     base = trackers.load("p2b-kitti1-u")
     model = ppo(data, base)

@@ -658,10 +658,96 @@ def test_still_target_test_keeps_the_box_only_where_the_target_stayed():
     assert hold.keeps_box(prepare_observation(sparse)[0]).item() is False
 
 
+def _reranked_by_hand(obs, candidates, margin_m):
+    """The re-ranking's choice computed independently (float64 numpy, brute-force Chamfer):
+    the index of the candidate ``(K, 4)`` whose crop lies nearest to the first crop."""
+    size = obs["size"].astype(np.float64)
+    floor = -size[2] / 2 + 0.2
+
+    def above(points):
+        return points[(points != 0).any(1) & (points[:, 2] > floor)]
+
+    first = above(obs["template"][:256].astype(np.float64))
+    distances = []
+    for j, (dx, dy, dz, dyaw) in enumerate(candidates.astype(np.float64)):
+        p = obs["search"].astype(np.float64) - [dx, dy, dz]
+        c, s = np.cos(dyaw), np.sin(dyaw)
+        p = np.c_[c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1], p[:, 2]]
+        crop = above(p[(np.abs(p) <= size * 0.625).all(1)])
+        if len(crop) < 5:
+            distances.append(np.inf)
+            continue
+        d = np.linalg.norm(crop[:, None] - first[None], axis=-1)
+        distances.append(0.5 * (d.min(1).mean() + d.min(0).mean()) + (margin_m if j else 0.0))
+    return int(np.argmin(distances))
+
+
+def test_re_ranking_executes_the_candidate_that_matches_the_first_crop():
+    tracker = tiny("p2b", rerank_top_k=2)
+    moved = _still_target_observation(0, shift_m=0.6)
+    batch, _ = prepare_observation(moved)
+    # the best-scored proposal goes the wrong way; the second one follows the target
+    proposals = torch.tensor([[[-2.0, 0.0, 0.0, 0.0], [0.6, 0.0, 0.0, 0.0], [0.3, 0.2, 0.0, 0.1]]])
+    outputs = {"proposals": proposals, "scores": torch.tensor([[0.9, 0.5, 0.1]])}
+    for k, margin, expected in ((2, 0.0, [0.6, 0, 0, 0]), (1, 0.0, [0, 0, 0, 0])):
+        tracker.config.rerank_top_k, tracker.config.rerank_margin_m = k, margin
+        chosen = tracker.choose_action(batch, outputs)[0].numpy()
+        candidates = np.r_[np.zeros((1, 4)), proposals[0, :k].numpy()]
+        hand = candidates[_reranked_by_hand(moved, candidates, margin)]
+        np.testing.assert_allclose(hand, expected, atol=1e-6)
+        np.testing.assert_array_equal(chosen, np.asarray(expected, np.float32))
+    tracker.config.rerank_top_k, tracker.config.rerank_margin_m = 2, 10.0  # moves never win
+    assert not tracker.choose_action(batch, outputs).any()
+    # off, too few first-crop points, or a non-finite proposal: the best-scored proposal stands
+    tracker.config.rerank_margin_m = 0.0
+    best = proposals[0, 0].numpy()
+    tracker.config.rerank_top_k = 0
+    np.testing.assert_array_equal(tracker.choose_action(batch, outputs)[0].numpy(), best)
+    tracker.config.rerank_top_k = 2
+    sparse = dict(moved, template=np.zeros_like(moved["template"]))
+    sparse_batch, _ = prepare_observation(sparse)
+    np.testing.assert_array_equal(tracker.choose_action(sparse_batch, outputs)[0].numpy(), best)
+    broken = dict(outputs, proposals=proposals.clone())
+    broken["proposals"][0, 1, 0] = float("nan")
+    np.testing.assert_array_equal(tracker.choose_action(batch, broken)[0].numpy(), best)
+
+
+def test_re_ranking_agrees_with_an_independent_choice_on_network_outputs():
+    tracker = trackers.load("bat-kitti1-u")  # trained: its proposals follow the moved target
+    tracker.config.hold_chamfer_m, tracker.config.rerank_top_k = 0.0, 4
+    tracker.config.rerank_margin_m = 0.02
+    shifts = (0.0, 0.3, 0.8, 1.5)
+    obs = [_still_target_observation(seed, shift_m) for seed in (0, 1) for shift_m in shifts]
+    batch = {k: np.stack([o[k] for o in obs]) for k in obs[0]}
+    with torch.no_grad():
+        out = tracker.eval_forward(prepare_observation(batch)[0])
+    top = out["scores"].topk(4, dim=1).indices
+    a_max = np.asarray(tracker.max_action)
+    actions, picks = tracker.act(batch), []
+    for i, o in enumerate(obs):
+        candidates = np.clip(
+            np.r_[np.zeros((1, 4)), out["proposals"][i, top[i]].numpy()], -a_max, a_max
+        )
+        picks.append(_reranked_by_hand(o, candidates, 0.02))
+        np.testing.assert_allclose(actions[i], candidates[picks[-1]], atol=1e-6)
+    # the reference box on the still targets, and proposals other than the best-scored
+    assert picks[0] == picks[4] == 0 and max(picks) >= 2
+    tracker.config.rerank_top_k = 0
+    np.testing.assert_array_equal(
+        tracker.act(batch), np.clip(tracker.best_action(out).numpy(), -a_max, a_max)
+    )
+
+
 def test_still_target_test_checks_its_inputs():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="hold_chamfer_m"):
             tiny("p2b", hold_chamfer_m=bad)
+    for field, bad in (("rerank_top_k", -1), ("rerank_top_k", 1.5), ("rerank_top_k", True)):
+        with pytest.raises(ValueError, match=f"{field} = {bad!r}"):
+            tiny("p2b", **{field: bad})
+    for bad in (-0.1, float("nan")):
+        with pytest.raises(ValueError, match="rerank_margin_m"):
+            tiny("p2b", rerank_top_k=2, rerank_margin_m=bad)
     tracker = tiny("bat", hold_chamfer_m=0.1)
     tracker.env_options = {"template_mode": "first_and_previous_merged"}
     with pytest.raises(ValueError, match="template_mode 'first_and_previous_merged'"):

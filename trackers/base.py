@@ -59,6 +59,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from envs.geometry import world_to_box_torch
 from envs.observation import TEMPLATE_SCALE
 from trackers import ops
 from trackers.backbone import Backbone, BackboneConfig
@@ -113,8 +114,14 @@ class TrackerConfig:
 
 #: Fewest points in a crop for the still-target test to decide anything.
 HOLD_MIN_POINTS = 5
-#: The still-target test leaves out points this close above the box's bottom (m): the ground.
+#: The still-target test and the re-ranking leave out points this close above the box's bottom
+#: (m): the ground.
 HOLD_GROUND_CLEARANCE_M = 0.2
+
+
+#: The :class:`MatchingConfig` fields that act at inference only (the weights do not depend on
+#: them).
+INFERENCE_ONLY_FIELDS = ("hold_chamfer_m", "rerank_top_k", "rerank_margin_m")
 
 
 @dataclass
@@ -125,11 +132,20 @@ class MatchingConfig(TrackerConfig):
     (symmetric Chamfer distance) of the template's crops (:meth:`MatchingTracker.keeps_box`):
     the target has not moved against the sensor. Not in the papers: the matching head alone
     lets a parked car's box slide along it (docs/checkpoints.md, "Holding still targets").
-    0 (default) is off."""
+    0 (default) is off.
+
+    And of its re-ranking: with ``rerank_top_k > 0`` the executed box is, of the reference box
+    and the ``rerank_top_k`` best-scored proposals, the one whose crop (scaled 1.25) lies
+    nearest (symmetric Chamfer distance) to the first frame's crop, a proposal counting
+    ``rerank_margin_m`` farther than it is (:meth:`MatchingTracker.choose_action`): the network
+    moves the box only where the move matches the target better. Not in the papers either
+    (docs/checkpoints.md, "Re-ranking by the first crop"). 0 (default) is off."""
 
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     head: HeadConfig = field(default_factory=HeadConfig)
     hold_chamfer_m: float = 0.0
+    rerank_top_k: int = 0
+    rerank_margin_m: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -137,6 +153,18 @@ class MatchingConfig(TrackerConfig):
             raise ValueError(
                 f"hold_chamfer_m = {self.hold_chamfer_m!r}: expected a finite distance >= 0 "
                 f"(metres; 0 turns the still-target test off)"
+            )
+        if isinstance(self.rerank_top_k, bool) or not (
+            isinstance(self.rerank_top_k, int) and self.rerank_top_k >= 0
+        ):
+            raise ValueError(
+                f"rerank_top_k = {self.rerank_top_k!r}: expected an integer >= 0 (proposals; "
+                f"0 turns the re-ranking off)"
+            )
+        if not (math.isfinite(self.rerank_margin_m) and self.rerank_margin_m >= 0):
+            raise ValueError(
+                f"rerank_margin_m = {self.rerank_margin_m!r}: expected a finite distance >= 0 "
+                f"(metres)"
             )
 
 
@@ -348,6 +376,13 @@ class Tracker(nn.Module):
         the network: by default the :meth:`empty_observations`."""
         return self.empty_observations(batch)
 
+    def choose_action(
+        self, batch: Mapping[str, torch.Tensor], outputs: dict[str, torch.Tensor]
+    ) -> torch.Tensor:
+        """The action ``(B, 4)`` :meth:`act` executes (before clipping to ``max_action``) from
+        :meth:`forward`'s ``outputs`` on ``batch``: by default :meth:`best_action`."""
+        return self.best_action(outputs)
+
     def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """One feature vector per sample ``(B, summary_channels)`` for heads that read the
         tracker's state (the RL critic): :meth:`features` ``(B, M, D)`` max- and mean-pooled
@@ -362,8 +397,8 @@ class Tracker(nn.Module):
 
     @torch.no_grad()
     def act(self, obs: Any) -> np.ndarray:
-        """:meth:`best_action` as an action: one observation -> ``(4,)``, a batch -> ``(B, 4)``
-        (an empty batch -> an empty ``(0, 4)`` array)."""
+        """:meth:`choose_action` as an action, 0 where :meth:`keeps_box`: one observation ->
+        ``(4,)``, a batch -> ``(B, 4)`` (an empty batch -> an empty ``(0, 4)`` array)."""
         batch, single = self.prepare(obs)
         b = batch[self.point_keys[0]].shape[0]
         if b == 0:
@@ -372,10 +407,10 @@ class Tracker(nn.Module):
         action = torch.zeros(b, 4, device=self.device)
         if not keep.all():  # the network runs on the observations it decides
             moving = ~keep
-            out = self.eval_forward(
-                {k: v[moving] if _batched(v, b) else v for k, v in batch.items()}
+            decided = {k: v[moving] if _batched(v, b) else v for k, v in batch.items()}
+            action[moving] = self.choose_action(decided, self.eval_forward(decided)).to(
+                action.dtype
             )
-            action[moving] = self.best_action(out).to(action.dtype)
         action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
         a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
         action = torch.maximum(torch.minimum(action, a_max), -a_max)
@@ -384,6 +419,20 @@ class Tracker(nn.Module):
 
     def extra_repr(self) -> str:
         return f"name={self.name!r}"
+
+
+def _above_ground(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` bool: the points ``(B, N, 3)`` (box frame; zero rows are padding) at least
+    :data:`HOLD_GROUND_CLEARANCE_M` above the bottom of the box of ``size (B, 3)``."""
+    floor = -size[:, None, 2] / 2 + HOLD_GROUND_CLEARANCE_M
+    return (points != 0).any(-1) & (points[..., 2] > floor)
+
+
+def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` bool: the points ``(B, N, 3)`` of :func:`_above_ground` inside the box scaled
+    :data:`TEMPLATE_SCALE` (the template's crop of them)."""
+    half = size[:, None, :] * (TEMPLATE_SCALE / 2)
+    return (points.abs() <= half).all(-1) & _above_ground(points, size)
 
 
 def _batched(value: Any, b: int) -> bool:
@@ -429,19 +478,65 @@ class MatchingTracker(Tracker):
             return keep
         first, previous = self.template_crops(batch["template"])  # (B, P, 3) each
         size, search = batch["size"], batch["search"]
-        floor = -size[:, None, 2] / 2 + HOLD_GROUND_CLEARANCE_M  # (B, 1)
-
-        def above_ground(points: torch.Tensor) -> torch.Tensor:  # zero rows: padding
-            return (points != 0).any(-1) & (points[..., 2] > floor)
-
-        half = size[:, None, :] * (TEMPLATE_SCALE / 2)
-        in_box = (search.abs() <= half).all(-1) & above_ground(search)
+        in_box = _crop_mask(search, size)
         still = in_box.sum(1) >= HOLD_MIN_POINTS
         for crop in (previous, first):
-            mask = above_ground(crop)
+            mask = _above_ground(crop, size)  # the env cropped it
             distance = ops.chamfer_distance(search, in_box, crop, mask)
             still &= (distance < self.config.hold_chamfer_m) & (mask.sum(1) >= HOLD_MIN_POINTS)
         return keep | still
+
+    def choose_action(
+        self, batch: Mapping[str, torch.Tensor], outputs: dict[str, torch.Tensor]
+    ) -> torch.Tensor:
+        """:meth:`best_action`, or with ``config.rerank_top_k = K > 0`` the re-ranked action
+        ``(B, 4)``: of the reference box (action 0) and the ``K`` best-scored proposals (each
+        clipped to ``max_action``), the box whose crop (search points inside it scaled 1.25,
+        above the ground as in :meth:`keeps_box`) has the smallest Chamfer distance to the first
+        frame's crop, a proposal's distance counted ``rerank_margin_m`` larger. A candidate
+        whose crop has fewer than :data:`HOLD_MIN_POINTS` points is out; where the first crop
+        has fewer, or no candidate is left, or a proposal is not finite, :meth:`best_action`
+        stands. Differentiable in the chosen proposal (not in the choice)."""
+        best = self.best_action(outputs)
+        k = min(self.config.rerank_top_k, outputs["scores"].shape[1])
+        if k == 0:
+            return best
+        b = best.shape[0]
+        top = outputs["scores"].topk(k, dim=1).indices  # (B, K)
+        proposals = outputs["proposals"][torch.arange(b, device=top.device)[:, None], top]
+        a_max = torch.as_tensor(self.max_action, device=best.device, dtype=best.dtype)
+        candidates = torch.cat(  # (B, 1 + K, 4): the reference box first
+            [
+                torch.zeros_like(best)[:, None],
+                torch.maximum(torch.minimum(proposals, a_max), -a_max),
+            ],
+            dim=1,
+        )
+        first, _ = self.template_crops(batch["template"])
+        size, search = batch["size"], batch["search"]
+        zeros = torch.zeros_like(candidates[..., :3])
+        boxes = torch.cat([candidates[..., :3], zeros, candidates[..., 3:]], dim=-1)  # (B, 1+K, 7)
+        moved = world_to_box_torch(search[:, None].detach(), boxes.detach())  # (B, 1+K, N, 3)
+        moved = moved.reshape(b * (k + 1), -1, 3)
+        crops, in_box = ops.compact(moved, _crop_mask(moved, size.repeat_interleave(k + 1, 0)))
+        first_mask = _above_ground(first, size)
+        distance = ops.chamfer_distance(
+            crops,
+            in_box,
+            first.repeat_interleave(k + 1, dim=0),
+            first_mask.repeat_interleave(k + 1, dim=0),
+        ).reshape(b, k + 1)
+        distance = torch.where(
+            in_box.sum(1).reshape(b, k + 1) >= HOLD_MIN_POINTS, distance, math.inf
+        )
+        distance[:, 1:] += self.config.rerank_margin_m
+        decides = (
+            (first_mask.sum(1) >= HOLD_MIN_POINTS)
+            & torch.isfinite(distance).any(1)
+            & torch.isfinite(proposals).all(-1).all(-1)
+        )
+        chosen = candidates[torch.arange(b, device=top.device), distance.argmin(1)]
+        return torch.where(decides[:, None], chosen, best)
 
     def template_crops(self, template: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The first and the previous frame's crops ``(B, 256, 3)`` of ``template (B, 512,

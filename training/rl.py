@@ -29,8 +29,9 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
   rollout and the update (PPO's ratio would not start at 1). :meth:`TrackerPolicy.train` keeps
   the tracker in eval mode whatever SB3's ``set_training_mode`` asks; an eval-mode forward is
   still differentiable.
-* **Action mean** ``action_mode="best"`` (default): ``tracker.best_action`` (the best-scored
-  proposal; M2-Track's final box), exactly what ``tracker.act`` executes, so the policy starts
+* **Action mean** ``action_mode="best"`` (default): ``tracker.choose_action`` (the best-scored
+  proposal, or the re-ranked one of a matching tracker with ``rerank_top_k``; M2-Track's final
+  box), exactly what ``tracker.act`` executes, so the policy starts
   as the pretrained tracker and PPO's gradient reaches the box regression of that proposal
   (votes, clustering, offsets, and through them the fusion and backbone features); the scores
   get no gradient (an argmax is piecewise constant). ``"soft"``: the softmax(scores /
@@ -324,7 +325,7 @@ class TrackerPolicy(ActorCriticPolicy):
         batch, _ = self.tracker.prepare(obs)
         out = self.tracker(batch)
         if self.action_mode == "best":
-            action = self.tracker.best_action(out)
+            action = self.tracker.choose_action(batch, out)
         else:
             proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
             weights = torch.softmax(scores / self.temperature, dim=1)
