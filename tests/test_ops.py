@@ -313,3 +313,19 @@ def test_chamfer_distance_of_a_repeated_set_and_symmetry():
     np.testing.assert_allclose(ops.chamfer_distance(a, ones_a, doubled, ones_d), d, rtol=1e-6)
     np.testing.assert_allclose(ops.chamfer_distance(b, ones_b, a, ones_a), d, rtol=1e-6)
     assert (ops.chamfer_distance(a, ones_a, a, ones_a) == 0).all()
+
+
+def test_compact_keeps_each_masked_set_in_order_in_less_room():
+    a, b = _points(3, 40, seed=6), _points(3, 30, seed=7)
+    mask = torch.zeros(3, 40, dtype=torch.bool)
+    mask[0, [3, 17, 39]] = True
+    mask[1, ::4] = True  # 10 points: the widest row
+    points, kept = ops.compact(a, mask)  # row 2 is empty
+    assert points.shape == (3, 10, 3) and kept.sum(1).tolist() == [3, 10, 0]
+    for row in range(3):
+        torch.testing.assert_close(points[row][kept[row]], a[row][mask[row]], rtol=0, atol=0)
+    bm = torch.ones(3, 30, dtype=torch.bool)
+    np.testing.assert_allclose(
+        ops.chamfer_distance(points, kept, b, bm), ops.chamfer_distance(a, mask, b, bm), rtol=1e-6
+    )
+    assert ops.compact(a, torch.zeros(3, 40, dtype=torch.bool))[0].shape == (3, 1, 3)
