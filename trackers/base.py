@@ -516,9 +516,12 @@ class MatchingTracker(Tracker):
         size, search = batch["size"], batch["search"]
         zeros = torch.zeros_like(candidates[..., :3])
         boxes = torch.cat([candidates[..., :3], zeros, candidates[..., 3:]], dim=-1)  # (B, 1+K, 7)
-        moved = world_to_box_torch(search[:, None].detach(), boxes.detach())  # (B, 1+K, N, 3)
-        moved = moved.reshape(b * (k + 1), -1, 3)
-        crops, in_box = ops.compact(moved, _crop_mask(moved, size.repeat_interleave(k + 1, 0)))
+        # the search points in each candidate box's frame, (B (1 + K), N, 3)
+        in_frames = world_to_box_torch(search[:, None].detach(), boxes.detach())
+        in_frames = in_frames.reshape(b * (k + 1), -1, 3)
+        crops, in_box = ops.compact(
+            in_frames, _crop_mask(in_frames, size.repeat_interleave(k + 1, 0))
+        )
         first_mask = _above_ground(first, size)
         distance = ops.chamfer_distance(
             crops,
