@@ -315,17 +315,14 @@ def test_chamfer_distance_of_a_repeated_set_and_symmetry():
     assert (ops.chamfer_distance(a, ones_a, a, ones_a) == 0).all()
 
 
-def test_compact_keeps_each_masked_set_in_order_in_less_room():
-    a, b = _points(3, 40, seed=6), _points(3, 30, seed=7)
-    mask = torch.zeros(3, 40, dtype=torch.bool)
-    mask[0, [3, 17, 39]] = True
-    mask[1, ::4] = True  # 10 points: the widest row
-    points, kept = ops.compact(a, mask)  # row 2 is empty
-    assert points.shape == (3, 10, 3) and kept.sum(1).tolist() == [3, 10, 0]
-    for row in range(3):
-        torch.testing.assert_close(points[row][kept[row]], a[row][mask[row]], rtol=0, atol=0)
-    bm = torch.ones(3, 30, dtype=torch.bool)
-    np.testing.assert_allclose(
-        ops.chamfer_distance(points, kept, b, bm), ops.chamfer_distance(a, mask, b, bm), rtol=1e-6
-    )
-    assert ops.compact(a, torch.zeros(3, 40, dtype=torch.bool))[0].shape == (3, 1, 3)
+def test_chamfer_distance_of_a_row_does_not_depend_on_the_batch():
+    g = torch.Generator().manual_seed(8)
+    a, b = torch.randn(6, 300, 3, generator=g) * 2, torch.randn(6, 80, 3, generator=g)
+    a_mask = torch.rand(6, 300, generator=g) < torch.linspace(0.05, 0.9, 6)[:, None]
+    b_mask = torch.rand(6, 80, generator=g) < 0.7
+    batched = ops.chamfer_distance(a, a_mask, b, b_mask)
+    for i in range(6):  # alone, the rows are cut to their own masked counts: other sums
+        alone = ops.chamfer_distance(
+            a[i : i + 1], a_mask[i : i + 1], b[i : i + 1], b_mask[i : i + 1]
+        )
+        assert torch.equal(alone, batched[i : i + 1]), i

@@ -519,12 +519,10 @@ class MatchingTracker(Tracker):
         # the search points in each candidate box's frame, (B (1 + K), N, 3)
         in_frames = world_to_box_torch(search[:, None].detach(), boxes.detach())
         in_frames = in_frames.reshape(b * (k + 1), -1, 3)
-        crops, in_box = ops.compact(
-            in_frames, _crop_mask(in_frames, size.repeat_interleave(k + 1, 0))
-        )
+        in_box = _crop_mask(in_frames, size.repeat_interleave(k + 1, 0))
         first_mask = _above_ground(first, size)
         distance = ops.chamfer_distance(
-            crops,
+            in_frames,
             in_box,
             first.repeat_interleave(k + 1, dim=0),
             first_mask.repeat_interleave(k + 1, dim=0),

@@ -8,8 +8,7 @@ integer or comparison based; distances are computed the same way on both).
   independent of the input order), :func:`farthest_point_sample`;
 * neighbourhoods: :func:`ball_query` (PointNet++ semantics; :func:`ball_query_pairs` lists its
   real hits), :func:`knn` (any dimension: coordinates or features), :func:`pairwise_sqdist`;
-* set distances: :func:`chamfer_distance` between masked point sets (:func:`compact` drops
-  most of the unmasked padding first);
+* set distances: :func:`chamfer_distance` between masked point sets;
 * indexing: :func:`gather` / :func:`group`; copies of a point: :func:`first_copy`.
 """
 
@@ -25,7 +24,6 @@ __all__ = [
     "ball_query",
     "ball_query_pairs",
     "chamfer_distance",
-    "compact",
     "farthest_point_sample",
     "first_copy",
     "gather",
@@ -360,32 +358,41 @@ def chamfer_distance(
     the mean over ``a``'s points of the distance to the nearest point of ``b``, and the same
     from ``b`` to ``a``, averaged (a repeated point counts in its set's mean as often as it
     appears). ``inf`` where a set is empty.
+
+    The pairs are formed among the masked points only (each row's masked points moved first,
+    the rows cut to the batch's largest count); the nearest distances go back to their rows'
+    own ``(N,)`` / ``(M,)`` layout before the means, so a row's value is bit for bit the same
+    whatever else is in the batch.
     """
-    sq = pairwise_sqdist(a, b)
-    # inf on the pairs with a masked-out point, by adding (B, N, 1) and (B, 1, M) penalties of
-    # 0 / inf: exact (x + 0 = x) and cheaper than a (B, N, M) mask
-    pen_a = torch.zeros(a_mask.shape, dtype=sq.dtype, device=sq.device).masked_fill_(
-        ~a_mask, float("inf")
-    )
-    pen_b = torch.zeros(b_mask.shape, dtype=sq.dtype, device=sq.device).masked_fill_(
-        ~b_mask, float("inf")
-    )
+    a_order, b_order = _masked_first(a_mask), _masked_first(b_mask)
+    a_kept, b_kept = torch.gather(a_mask, 1, a_order), torch.gather(b_mask, 1, b_order)
+    sq = pairwise_sqdist(gather(a, a_order), gather(b, b_order))  # (B, N', M')
+    # inf on the pairs with a masked-out point, by adding (B, N', 1) and (B, 1, M') penalties
+    # of 0 / inf: exact (x + 0 = x) and cheaper than a (B, N', M') mask
+    inf = torch.tensor(math.inf, dtype=sq.dtype, device=sq.device)
+    pen_a = torch.where(a_kept, 0.0, inf).to(sq.dtype)
+    pen_b = torch.where(b_kept, 0.0, inf).to(sq.dtype)
     if sq.requires_grad:
         sq = sq + pen_a[:, :, None] + pen_b[:, None, :]
     else:
         sq.add_(pen_a[:, :, None]).add_(pen_b[:, None, :])
-    # the root of the nearest squared distance: sqrt is monotonic, so only (B, N) + (B, M) roots
-    a_to_b = torch.where(a_mask, sq.amin(dim=2).sqrt(), 0.0).sum(1) / a_mask.sum(1)
-    b_to_a = torch.where(b_mask, sq.amin(dim=1).sqrt(), 0.0).sum(1) / b_mask.sum(1)
+
+    def mean_nearest(nearest_sq: torch.Tensor, kept, order, mask) -> torch.Tensor:
+        # the root of the nearest squared distance (sqrt is monotonic: only N' roots), back in
+        # the row's own layout for a sum that does not depend on the batch
+        nearest = torch.where(kept, nearest_sq.sqrt(), 0.0)
+        full = torch.zeros(mask.shape, dtype=nearest.dtype, device=nearest.device)
+        return full.scatter(1, order, nearest).sum(1) / mask.sum(1)
+
+    a_to_b = mean_nearest(sq.amin(dim=2), a_kept, a_order, a_mask)
+    b_to_a = mean_nearest(sq.amin(dim=1), b_kept, b_order, b_mask)
     out = 0.5 * (a_to_b + b_to_a)
     return torch.where(a_mask.any(1) & b_mask.any(1), out, math.inf)
 
 
-def compact(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``points (B, N, C)`` with each row's masked points first (in their order) and the rows
-    cut to the largest masked count ``N'`` (at least 1) -> ``(B, N', C)``, ``mask (B, N')``:
-    the same masked sets in less room, for the ``O(N M)`` ops that follow."""
+def _masked_first(mask: torch.Tensor) -> torch.Tensor:
+    """``(B, N')`` indices of each row's masked points first (in their order), the rows cut to
+    the largest masked count ``N'`` (at least 1)."""
     order = torch.sort(mask.to(torch.uint8), dim=1, descending=True, stable=True).indices
     keep = max(int(mask.sum(1).max()) if mask.numel() else 0, 1)
-    order = order[:, :keep]
-    return gather(points, order), torch.gather(mask, 1, order)
+    return order[:, :keep]
