@@ -247,19 +247,22 @@ def test_losses_are_the_published_batch_losses_per_sample():
 
 
 def test_training_steps_lower_the_loss_on_a_tiny_batch():
+    """The loss of single steps jumps (x2 between neighbours), so the last five are averaged:
+    15 steps and the last loss alone passed on one CPU kind and not on another (session 26);
+    at 30 steps the last five average 0.14-0.32 of the first for torch seeds 0-3 here."""
     torch.manual_seed(0)
     model = trackers.make("m2track", **SLIM).train()
     batch = _clouds(4, n=128, seed=2)
     targets = _targets(batch, seed=2)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
-    for _ in range(15):
+    for _ in range(30):
         loss = model.loss(model(batch), targets)["total"].mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
         losses.append(float(loss.detach()))
-    assert losses[-1] < 0.5 * losses[0], losses
+    assert np.mean(losses[-5:]) < 0.5 * losses[0], losses
 
 
 def test_save_load_round_trip(tmp_path):

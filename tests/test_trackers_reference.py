@@ -1,10 +1,9 @@
-"""Shipped checkpoints: outputs bit-identical to those recorded before the tracker refactor
-(tests/data/tracker_reference.npz, from main cfcfd29; the later fine-tunes' entries from session
-16), and results independent of batching."""
+"""Shipped checkpoints: outputs equal to those recorded before the tracker refactor (tests/data/
+tracker_reference.npz, from main cfcfd29; the later fine-tunes' entries from session 16) to
+float32 rounding, and results independent of batching."""
 
 from __future__ import annotations
 
-import hashlib
 import sys
 from pathlib import Path
 
@@ -13,11 +12,10 @@ import pytest
 import torch
 
 import trackers
-from trackers.base import INFERENCE_ONLY_FIELDS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "data"))
 from record_tracker_reference import CHECKPOINTS as RECORDED_BEFORE_REFACTOR  # noqa: E402
-from record_tracker_reference import KEYS, LATER  # noqa: E402 - the recorder's own lists
+from record_tracker_reference import KEYS, LATER, network_only, z_summary  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -31,36 +29,39 @@ def reference():
     return {k: data[k] for k in data.files}
 
 
-def network_only(model):
-    """``model`` with the inference-only still-target test and re-ranking off (added after the
-    recording; their own tests are in test_trackers.py): ``act`` is the network's action."""
-    for field in INFERENCE_ONLY_FIELDS:
-        if hasattr(model.config, field):
-            setattr(model.config, field, type(getattr(model.config, field))(0))
-    return model
+# float32 rounding differs between CPU kinds (measured: up to 7e-7 in the actions and 4.8e-6 in
+# the proposals between an Intel Xeon with AVX512 and the machine that recorded them); a
+# behaviour change moves them by millimetres or more
+OUTPUT_ATOL = 1e-4
 
 
 @pytest.mark.parametrize("name", CHECKPOINTS)
-def test_outputs_bit_identical_to_the_recorded_reference(name, reference):
-    """One observation at a time: actions, proposals, scores and the fused features ``Z`` are
-    the recorded ones bit for bit. Batched, ``act`` now gives exactly the single-observation
-    actions (eval forwards are per sample), which the old batched forward did not always."""
+def test_outputs_match_the_recorded_reference(name, reference):
+    """One observation at a time: actions, proposals, scores and summaries of the fused
+    features ``Z`` are the recorded ones to float32 rounding. Batched, ``act`` gives exactly the
+    single-observation actions (eval forwards are per sample), which the old batched forward
+    did not always."""
     obs = {k: reference[f"obs_{k}"] for k in KEYS}
     n = len(obs["template"])
     model = network_only(trackers.load(name))
     single = np.stack([model.act({k: v[i] for k, v in obs.items()}) for i in range(n)])
-    np.testing.assert_array_equal(single, reference[f"{name}/act_single"])
-    np.testing.assert_array_equal(model.act(obs), reference[f"{name}/act_single"])
+    np.testing.assert_allclose(single, reference[f"{name}/act_single"], rtol=0, atol=OUTPUT_ATOL)
+    np.testing.assert_array_equal(model.act(obs), single)
     with torch.no_grad():
         outs = [
             model({k: torch.from_numpy(v[i : i + 1]) for k, v in obs.items()}) for i in range(n)
         ]
     for key in ("proposals", "scores"):
-        np.testing.assert_array_equal(
-            np.concatenate([o[key].numpy() for o in outs]), reference[f"{name}/{key}"], err_msg=key
+        np.testing.assert_allclose(
+            np.concatenate([o[key].numpy() for o in outs]),
+            reference[f"{name}/{key}"],
+            rtol=0,
+            atol=OUTPUT_ATOL,
+            err_msg=key,
         )
-    z = np.ascontiguousarray(np.concatenate([o["Z"].numpy() for o in outs]))
-    assert hashlib.sha256(z.tobytes()).hexdigest() == str(reference[f"{name}/Z_sha256"])
+    z = z_summary(name, np.concatenate([o["Z"].numpy() for o in outs]))
+    for key, value in z.items():
+        np.testing.assert_allclose(value, reference[key], rtol=1e-4, atol=OUTPUT_ATOL, err_msg=key)
 
 
 @pytest.mark.parametrize("name", CHECKPOINTS)

@@ -5,16 +5,19 @@ The six -U / -W entries were recorded from main at commit cfcfd29 (before the tr
 of issue 21); the entries of the checkpoints shipped since (``LATER``: the RL and DRCT
 fine-tunes, session 16; the kitti-2 P2B checkpoints, session 20) were added from the code of
 their time, and ``bat-kitti1-u`` was re-recorded when its file was replaced (session 23), so
-that
-``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs stay
-bit-identical. Run: ``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python
+that ``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs
+stay what they were. Until session 26 the check was bit for bit and ``Z`` was kept as a
+SHA-256; on another CPU (an Intel Xeon with AVX512, the entries having been recorded on
+another kind) the same float32 forward rounds differently, by up to 7e-7 in the actions, so
+the check has a tolerance and ``Z`` is kept as summaries (``z_summary``), recorded in session
+26 from the code of that time after every recorded action, proposal and score had been matched
+to the tolerance. Run: ``PYTHONPATH=$PWD OMP_NUM_THREADS=1 python
 tests/data/record_tracker_reference.py [NAME ...]`` (names given: only their entries are
 recorded, the file's other entries are kept).
 """
 
 from __future__ import annotations
 
-import hashlib
 import sys
 from pathlib import Path
 
@@ -23,6 +26,7 @@ import torch
 
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
+from trackers.base import INFERENCE_ONLY_FIELDS
 from trackers.toy import toy_batch
 
 CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"]
@@ -51,6 +55,22 @@ def observations() -> dict[str, np.ndarray]:
     return {k: np.stack([np.asarray(x[k], np.float32) for x in obs]) for k in KEYS}
 
 
+def network_only(model):
+    """``model`` with the inference-only still-target test and re-ranking off (added after the
+    first recordings; their own tests are in test_trackers.py): ``act`` is the network's
+    action."""
+    for field in INFERENCE_ONLY_FIELDS:
+        if hasattr(model.config, field):
+            setattr(model.config, field, type(getattr(model.config, field))(0))
+    return model
+
+
+def z_summary(name: str, z: np.ndarray) -> dict[str, np.ndarray]:
+    """The fused features ``Z`` (B, C, N) are large: their mean and standard deviation over the
+    last axis, (B, C) each, stand in for them."""
+    return {f"{name}/Z_mean": z.mean(axis=-1), f"{name}/Z_std": z.std(axis=-1)}
+
+
 def main(names: list[str]) -> None:
     torch.set_num_threads(1)
     path = Path(__file__).with_name("tracker_reference.npz")
@@ -63,7 +83,7 @@ def main(names: list[str]) -> None:
                 out[key] = old[key]
     n = len(obs["template"])
     for name in names or CHECKPOINTS + LATER:
-        model = trackers.load(name)
+        model = network_only(trackers.load(name))
         out[f"{name}/act_single"] = np.stack(
             [model.act({k: v[i] for k, v in obs.items()}) for i in range(n)]
         )
@@ -74,9 +94,7 @@ def main(names: list[str]) -> None:
             ]
         for key in ("proposals", "scores"):
             out[f"{name}/{key}"] = np.concatenate([f[key].numpy() for f in fw])
-        # the fused features are large: their SHA-256 (bit-exact) instead of the values
-        z = np.ascontiguousarray(np.concatenate([f["Z"].numpy() for f in fw]))
-        out[f"{name}/Z_sha256"] = np.array(hashlib.sha256(z.tobytes()).hexdigest())
+        out.update(z_summary(name, np.concatenate([f["Z"].numpy() for f in fw])))
     np.savez_compressed(path, **out)
     print(path, path.stat().st_size)
 
