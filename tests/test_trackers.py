@@ -668,9 +668,11 @@ def _reranked_by_hand(obs, candidates, margin_m):
         return points[(points != 0).any(1) & (points[:, 2] > floor)]
 
     first = above(obs["template"][:256].astype(np.float64))
+    search = obs["search"].astype(np.float64)
+    search = search[(search != 0).any(1)]  # padding rows, wherever a box moves them
     distances = []
     for j, (dx, dy, dz, dyaw) in enumerate(candidates.astype(np.float64)):
-        p = obs["search"].astype(np.float64) - [dx, dy, dz]
+        p = search - [dx, dy, dz]
         c, s = np.cos(dyaw), np.sin(dyaw)
         p = np.c_[c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1], p[:, 2]]
         crop = above(p[(np.abs(p) <= size * 0.625).all(1)])
@@ -710,6 +712,30 @@ def test_re_ranking_executes_the_candidate_that_matches_the_first_crop():
     broken = dict(outputs, proposals=proposals.clone())
     broken["proposals"][0, 1, 0] = float("nan")
     np.testing.assert_array_equal(tracker.choose_action(batch, broken)[0].numpy(), best)
+
+
+def test_re_ranking_leaves_zero_padding_out_of_every_candidate_crop():
+    """Zero rows pad the search; a moved candidate box moves them off the origin, where they
+    must still not count as points. Here the target (a face 1.5 m ahead of the centre) moved
+    0.6 m; in the true candidate's frame the padding would sit 2.1 m from the face and the
+    reference box would win."""
+    rng = np.random.default_rng(4)
+    face = np.c_[np.full(256, 1.5), rng.uniform(-0.8, 0.8, 256), rng.uniform(-0.4, 0.6, 256)]
+    search = np.zeros((1024, 3))
+    search[:256] = face[rng.permutation(256)] + [0.6, 0, 0]  # 3/4 of the rows are padding
+    padded = {
+        "template": np.r_[face, face].astype(np.float32),
+        "search": search.astype(np.float32),
+        "size": np.float32([4.0, 1.8, 1.5]),
+        "motion": np.zeros(4, np.float32),
+    }
+    tracker = tiny("p2b", rerank_top_k=2)
+    proposals = torch.tensor([[[0.0, 0.5, 0.0, 0.0], [0.6, 0.0, 0.0, 0.0]]])
+    outputs = {"proposals": proposals, "scores": torch.tensor([[0.9, 0.5]])}
+    chosen = tracker.choose_action(prepare_observation(padded)[0], outputs)[0].numpy()
+    candidates = np.r_[np.zeros((1, 4)), proposals[0].numpy()]
+    np.testing.assert_array_equal(chosen, candidates[_reranked_by_hand(padded, candidates, 0.0)])
+    np.testing.assert_array_equal(chosen, np.float32([0.6, 0, 0, 0]))
 
 
 def test_re_ranking_agrees_with_an_independent_choice_on_network_outputs():

@@ -519,7 +519,8 @@ class MatchingTracker(Tracker):
         # the search points in each candidate box's frame, (B (1 + K), N, 3)
         in_frames = world_to_box_torch(search[:, None].detach(), boxes.detach())
         in_frames = in_frames.reshape(b * (k + 1), -1, 3)
-        in_box = _crop_mask(in_frames, size.repeat_interleave(k + 1, 0))
+        padding = (search == 0).all(-1).repeat_interleave(k + 1, 0)  # zero before moving
+        in_box = _crop_mask(in_frames, size.repeat_interleave(k + 1, 0)) & ~padding
         first_mask = _above_ground(first, size)
         distance = ops.chamfer_distance(
             in_frames,
