@@ -4,7 +4,7 @@ checkpoints on fixed observations (toy batches, padded clouds, env observations,
 The six -U / -W entries were recorded from main at commit cfcfd29 (before the tracker refactor
 of issue 21); the entries of the checkpoints shipped since (``LATER``: the RL and DRCT
 fine-tunes, session 16; the kitti-2 P2B checkpoints, session 20) were added from the code of
-their time, and ``bat-kitti1-u`` was re-recorded when its file was replaced (session 23), so
+their time, and ``bat-kitti1-u`` was re-recorded when its file was replaced (sessions 23 and 26), so
 that ``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs
 stay what they were. Until session 26 the check was bit for bit and ``Z`` was kept as a
 SHA-256; on another CPU (an Intel Xeon with AVX512, the entries having been recorded on
