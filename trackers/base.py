@@ -383,6 +383,11 @@ class Tracker(nn.Module):
         :meth:`forward`'s ``outputs`` on ``batch``: by default :meth:`best_action`."""
         return self.best_action(outputs)
 
+    def clip_to_max_action(self, action: torch.Tensor) -> torch.Tensor:
+        """``action (..., 4)`` clipped to ``[-max_action, max_action]`` per component."""
+        a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
+        return torch.maximum(torch.minimum(action, a_max), -a_max)
+
     def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """One feature vector per sample ``(B, summary_channels)`` for heads that read the
         tracker's state (the RL critic): :meth:`features` ``(B, M, D)`` max- and mean-pooled
@@ -411,9 +416,7 @@ class Tracker(nn.Module):
             action[moving] = self.choose_action(decided, self.eval_forward(decided)).to(
                 action.dtype
             )
-        action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
-        a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
-        action = torch.maximum(torch.minimum(action, a_max), -a_max)
+        action = self.clip_to_max_action(torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0))
         result = action.cpu().numpy().astype(np.float32)
         return result[0] if single else result
 
@@ -504,13 +507,8 @@ class MatchingTracker(Tracker):
         b = best.shape[0]
         top = outputs["scores"].topk(k, dim=1).indices  # (B, K)
         proposals = outputs["proposals"][torch.arange(b, device=top.device)[:, None], top]
-        a_max = torch.as_tensor(self.max_action, device=best.device, dtype=best.dtype)
         candidates = torch.cat(  # (B, 1 + K, 4): the reference box first
-            [
-                torch.zeros_like(best)[:, None],
-                torch.maximum(torch.minimum(proposals, a_max), -a_max),
-            ],
-            dim=1,
+            [torch.zeros_like(best)[:, None], self.clip_to_max_action(proposals)], dim=1
         )
         first, _ = self.template_crops(batch["template"])
         size, search = batch["size"], batch["search"]
