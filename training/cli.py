@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "finetune": ("finetune", "RL fine-tuning of a pretrained tracker with stable-baselines3"),
     "bench": ("bench", "run the speed benchmarks and print their numbers"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),
+    "info": ("info", "print a checkpoint's provenance: what it was trained and chosen on"),
 }
 
 # The exception types a command raises for expected errors (their message is the whole story).

@@ -200,6 +200,7 @@ def score_candidates(
         observation_keys_for,
         save_report,
     )
+    from training.provenance import check_candidates
 
     config = config if config is not None else SelectionConfig()
     if not candidates:
@@ -209,6 +210,7 @@ def score_candidates(
     observed = list(get_setting(config.setting).observed)
     # all of them before any scoring, so a typo fails in a second
     loaded = {c: load_candidate(c) for c in candidates}
+    check_candidates(loaded, config, log)  # none trained on the parts or the unseen categories
     digests = {c: _candidate_digest(c) for c in candidates}
     cache = Path(cache_dir) if cache_dir is not None else None
     if cache is not None:  # temporaries of a killed selection (reports are renamed into place)

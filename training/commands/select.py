@@ -57,6 +57,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="write DIR/selection.json; per-part reports are kept in DIR/parts for reruns",
     )
+    parser.add_argument(
+        "--save",
+        default=None,
+        metavar="FILE.safetensors",
+        help="write the first-ranked candidate as a tracker file whose provenance records this "
+        "selection (the rule, the parts, every candidate's score)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -106,4 +113,8 @@ def run(args: argparse.Namespace) -> int:
         }
         path = save_report(summary, out / "selection.json")
         print(f"wrote {path}")
+    if args.save:
+        from training.provenance import save_selected
+
+        print(f"wrote {save_selected(rows, config, args.save)}")
     return 0
