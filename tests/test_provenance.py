@@ -375,3 +375,47 @@ def test_finetune_refuses_an_env_serving_a_held_out_category():
     check_finetune_categories(base, "kitti-2", allow=True)
     with pytest.warns(ProvenanceWarning, match="records no setting"):
         check_finetune_categories(_tracker(Provenance()), "kitti-2", allow=False)
+
+
+# --------------------------------------------------------------------------- bad inputs
+
+
+def test_select_refuses_one_file_given_by_name_and_path(tmp_path):
+    from training.selection import score_candidates
+
+    shipped = str(CHECKPOINT_DIR / "p2b-kitti2-u.safetensors")
+    config = SelectionConfig(preset="tiny", parts=(ValPart(1, "val"),), setting="kitti-2")
+    with pytest.raises(ValueError, match="'p2b-kitti2-u' and '.*p2b-kitti2-u.safetensors' are the"):
+        score_candidates(["p2b-kitti2-u", shipped], config)
+
+
+def test_tied_with_first_names_exact_ties_only():
+    from training.selection import tied_with_first
+
+    rows = [{"candidate": "a", "success": 40.0}, {"candidate": "b", "success": 40.0}]
+    assert tied_with_first(rows + [{"candidate": "c", "success": 39.99}]) == ["b"]
+    assert tied_with_first([rows[0], {"candidate": "c", "success": 39.99}]) == []
+
+
+def test_cli_ctrl_c_prints_interrupted_and_exits_130(monkeypatch, capsys):
+    from training import cli
+    from training.commands import info
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(info, "run", interrupted)
+    assert cli.main(["info", "p2b-kitti2-u"]) == 130
+    assert capsys.readouterr().err.strip() == "pointtrack info: interrupted"
+
+
+@pytest.mark.parametrize("size", [[0.0, 1.0, 1.0], [4.0, -1.0, 1.5]])
+def test_act_refuses_a_non_positive_size_naming_the_field(size):
+    obs = {
+        "template": np.zeros((512, 3), np.float32),
+        "search": np.zeros((1024, 3), np.float32),
+        "size": np.array(size, np.float32),
+        "motion": np.zeros(4, np.float32),
+    }
+    with pytest.raises(ValueError, match=r"observation\['size'\] must be > 0.*" + str(size[1])):
+        _slim_p2b().act(obs)

@@ -77,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
         format_ranking,
         ranking_uncertainty,
         score_candidates,
+        tied_with_first,
     )
 
     try:
@@ -102,10 +103,19 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise SystemExit(f"pointtrack select: {exc}") from exc
     print(format_ranking(rows, uncertainty))
-    print(
-        f"selected: {rows[0]['candidate']} (pooled observed Success {rows[0]['success']:.2f}; "
-        f"ranked first in {uncertainty[0]['p_first']:.0%} of tracklet resamples)"
-    )
+    tied = tied_with_first(rows)
+    if tied:  # the resamples give a tie to the row listed first: no evidence either way
+        print(
+            f"tie: {rows[0]['candidate']} and {', '.join(tied)} pool exactly the same observed "
+            f"Success ({rows[0]['success']:.2f}); {rows[0]['candidate']} is listed (and "
+            "selected) first only because it was given first"
+        )
+    else:
+        print(
+            f"selected: {rows[0]['candidate']} (pooled observed Success "
+            f"{rows[0]['success']:.2f}; ranked first in {uncertainty[0]['p_first']:.0%} of "
+            "tracklet resamples)"
+        )
     if out is not None:
         summary = {
             "config": {**vars(config), "parts": [str(p) for p in config.parts]},
