@@ -469,11 +469,14 @@ def test_every_finetune_flag_reaches_the_config():
         "snapshot_every": ("4", 4),
         "val_max_tracklets": ("5", 5),
     }
-    assert set(given) == set(fields)
+    switches = {"allow_held_out"}  # store_true flags
+    assert set(given) | switches == set(fields)
     argv = []
     for dest, (text, _) in given.items():
         argv += ["--" + dest.replace("_", "-"), text]
-    cfg = build_config(parser.parse_args(argv))
+    cfg = build_config(parser.parse_args(argv + ["--" + d.replace("_", "-") for d in switches]))
     for dest, (_, expected) in given.items():
         value = getattr(cfg, dest)
         assert value == expected and type(value) is type(expected), dest
+    assert all(getattr(cfg, d) is True for d in switches)
+    assert build_config(parser.parse_args(argv)).allow_held_out is False
