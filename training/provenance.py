@@ -93,14 +93,6 @@ def _world_digest(root: str | Path | None) -> str:
     return match.group(1) if match else UNKNOWN
 
 
-def _file_sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def parent_entry(spec: str) -> dict[str, Any]:
     """``{"name", "sha256", "provenance"}`` of the checkpoint a run starts from (a tracker file,
     a shipped name or a training checkpoint); its provenance unknown when it records none."""
@@ -120,7 +112,9 @@ def parent_entry(spec: str) -> dict[str, Any]:
         import trackers
 
         provenance = trackers.load(path).provenance
-    return {"name": str(spec), "sha256": _file_sha256(path), "provenance": provenance}
+    with open(path, "rb") as f:
+        digest = hashlib.file_digest(f, "sha256").hexdigest()
+    return {"name": str(spec), "sha256": digest, "provenance": provenance}
 
 
 def _setting_categories(setting: str | None, category: str | None) -> list[str] | str:
