@@ -70,6 +70,15 @@ def test_ppo_run_writes_an_ordinary_tracker_checkpoint(tmp_path, data):
     tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
     changed = [k for k, v in tuned.state_dict().items() if not torch.equal(v, base.state_dict()[k])]
     assert changed and all(k.startswith("head.") for k in changed)  # train_parts="head"
+    provenance = tuned.provenance  # its own, not the base's (training.provenance)
+    assert (provenance.written_by, provenance.steps, provenance.parent["name"]) == (
+        "finetune",
+        32,
+        "p2b-kitti1-u",
+    )
+    assert provenance.parent["provenance"] == base.provenance
+    snapshot = trackers.load(out / "snapshots/tracker-00000016.safetensors")
+    assert snapshot.provenance.steps == 16
     assert log_steps(out) == [8, 16, 24, 32]
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert records[0]["actor_frozen"] and not records[1]["actor_frozen"]

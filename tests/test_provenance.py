@@ -419,3 +419,68 @@ def test_act_refuses_a_non_positive_size_naming_the_field(size):
     }
     with pytest.raises(ValueError, match=r"observation\['size'\] must be > 0.*" + str(size[1])):
         _slim_p2b().act(obs)
+
+
+def test_a_real_training_run_records_its_provenance(tmp_path):
+    """``pointtrack train``'s trainer writes the provenance into its checkpoints, and the
+    exported tracker file carries it (steps and samples as run; the data root of fake
+    tracklets is not a generated world, so its digest stays unknown)."""
+    from test_pretrain_support import train_slim_tracker
+
+    from training.checkpoint import tracker_from_checkpoint
+    from training.provenance import git_commit
+
+    result = train_slim_tracker(tmp_path / "run", epochs=1, iters_per_epoch=2)
+    tracker = tracker_from_checkpoint(result.out / "last.pt")
+    prov = tracker.provenance
+    assert (prov.written_by, prov.steps, prov.samples, prov.splits) == ("train", 2, 4, ["train"])
+    assert (prov.setting, prov.categories, prov.parent) == ("kitti-1", KITTI1_OBSERVED, None)
+    assert prov.git_commit == git_commit() != UNKNOWN and prov.generator_digest == UNKNOWN
+    assert len(prov.config_hash) == 64
+    path = trackers.save(tracker, tmp_path / "export.safetensors")
+    assert trackers.load(path).provenance == prov
+
+
+def test_cli_eval_reports_a_category_the_file_trained_on_as_observed(tmp_path, capsys):
+    """A file trained with Car evaluated as kitti-1 (Car unseen): a warning naming both, Car
+    reported observed (no ``*``); ``--strict`` refuses it before any evaluation."""
+    from training.cli import main
+
+    car = _stage(categories=["Car", *KITTI1_OBSERVED])
+    path = trackers.save(_slim_p2b(), tmp_path / "car.safetensors", provenance=car)
+    argv = ["eval", "--tracker", str(path), "--preset", "tiny", "--max-tracklets", "2"]
+    with pytest.warns(ProvenanceWarning, match=r"car.safetensors' was trained on \['Car'\]"):
+        assert main([*argv, "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "Car*" not in out and "Car" in out
+    assert main([*argv, "--strict"]) == 2
+    err = capsys.readouterr().err
+    assert "trained on ['Car'], which setting kitti-1 holds out" in err and "--strict" in err
+
+
+def test_finetune_provenance_names_the_world_ensure_world_makes():
+    """The generator digest a fine-tune records (computed without generating the world) is the
+    one ``ensure_world`` names the world's directory by, as a training run records it."""
+    from envs.synthetic import ensure_world
+    from training.finetune import FinetuneConfig
+
+    cfg = FinetuneConfig(tracker="p2b-kitti1-u", preset="tiny", world_seed=0)
+    root = ensure_world(preset="tiny", sensor="hdl64", seed=0)
+    prov = finetune_provenance(cfg, 8)
+    assert (prov.preset, prov.world_seed, prov.root_kind) == ("tiny", 0, "generated")
+    assert (
+        prov.generator_digest
+        == train_provenance({"dataset": "synthetic"}, root, 0).generator_digest
+    )
+    assert root.name.endswith(prov.generator_digest)
+
+
+def test_cli_finetune_refuses_a_held_out_category_before_any_work(tmp_path, capsys):
+    from training.cli import main
+
+    out = tmp_path / "ft"
+    argv = ["finetune", "--tracker", "p2b-kitti1-u", "--setting", "kitti-2", "--out", str(out)]
+    assert main([*argv, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert "pointtrack finetune: the training env (setting kitti-2) serves ['Car']" in err
+    assert "--allow-held-out" in err and not out.exists()

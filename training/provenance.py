@@ -166,15 +166,18 @@ def checkpoint_provenance(ckpt: Mapping[str, Any]) -> Provenance:
 def finetune_provenance(cfg: Any, steps: int) -> Provenance:
     """The provenance of a ``pointtrack finetune`` result after ``steps`` env steps
     (``cfg``: a ``training.finetune.FinetuneConfig``): the train split of its world, its
-    setting's observed categories (what ``train_env_factory`` serves), the base as parent."""
+    setting's observed categories (what ``train_env_factory`` serves), the base as parent.
+    A library caller that passes its own ``make_env`` to ``training.finetune.finetune`` must
+    make ``cfg`` describe that env: the record is ``cfg``'s."""
     from dataclasses import asdict
 
-    generated = not cfg.data_root
-    root = None
-    if generated:
-        from envs.synthetic import ensure_world
+    from envs.synthetic.world import world_identity
 
-        root = ensure_world(preset=cfg.preset, sensor=cfg.sensor, seed=cfg.world_seed)
+    generated = not cfg.data_root
+    digest = UNKNOWN
+    if generated:  # the hash ensure_world names the world's directory by, without generating it
+        identity = world_identity(cfg.preset, cfg.sensor, cfg.world_seed)
+        digest = hashlib.sha256(json.dumps(identity, sort_keys=True).encode()).hexdigest()[:12]
     return Provenance(
         written_by="finetune",
         dataset="synthetic" if generated else UNKNOWN,
@@ -182,7 +185,7 @@ def finetune_provenance(cfg: Any, steps: int) -> Provenance:
         preset=cfg.preset if generated else UNKNOWN,
         sensor=cfg.sensor if generated else UNKNOWN,
         world_seed=int(cfg.world_seed) if generated else UNKNOWN,
-        generator_digest=_world_digest(root),
+        generator_digest=digest,
         setting=cfg.setting,
         categories=_setting_categories(cfg.setting, None),
         splits=["train"],
