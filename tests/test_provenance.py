@@ -421,7 +421,7 @@ def test_act_refuses_a_non_positive_size_naming_the_field(size):
         _slim_p2b().act(obs)
 
 
-def test_a_real_training_run_records_its_provenance(tmp_path):
+def test_a_real_training_run_records_its_provenance(tmp_path, capsys):
     """``pointtrack train``'s trainer writes the provenance into its checkpoints, and the
     exported tracker file carries it (steps and samples as run; the data root of fake
     tracklets is not a generated world, so its digest stays unknown)."""
@@ -439,6 +439,10 @@ def test_a_real_training_run_records_its_provenance(tmp_path):
     assert len(prov.config_hash) == 64
     path = trackers.save(tracker, tmp_path / "export.safetensors")
     assert trackers.load(path).provenance == prov
+    from training.cli import main
+
+    assert main(["info", str(result.out / "last.pt")]) == 0  # a training checkpoint too
+    assert "written_by: train\n" in capsys.readouterr().out
 
 
 def test_cli_eval_reports_a_category_the_file_trained_on_as_observed(tmp_path, capsys):
@@ -484,3 +488,22 @@ def test_cli_finetune_refuses_a_held_out_category_before_any_work(tmp_path, caps
     err = capsys.readouterr().err
     assert "pointtrack finetune: the training env (setting kitti-2) serves ['Car']" in err
     assert "--allow-held-out" in err and not out.exists()
+
+
+def test_cli_select_save_appends_its_round_to_the_winner(tmp_path, capsys, one_torch_thread):
+    from training.cli import main
+
+    out = tmp_path / "chosen.safetensors"
+    argv = ["select", "p2b-kitti1-u", "previous_box", "--preset", "tiny", "--parts", "0:val"]
+    assert main([*argv, "--num-envs", "1", "--no-progress", "--save", str(out)]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    shipped, chosen = trackers.load("p2b-kitti1-u"), trackers.load(out)
+    assert all(torch.equal(v, shipped.state_dict()[k]) for k, v in chosen.state_dict().items())
+    prov = chosen.provenance
+    assert prov.selection[:-1] == shipped.provenance.selection  # earlier rounds kept
+    last = prov.selection[-1]
+    assert (last["parts"], last["preset"], last["chosen"]) == (["0:val"], "tiny", "p2b-kitti1-u")
+    assert set(last["scores"]) == {"p2b-kitti1-u", "previous_box"}
+    assert prov.replace(written_by="backfill", selection=shipped.provenance.selection) == (
+        shipped.provenance
+    )
