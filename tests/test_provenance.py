@@ -190,6 +190,7 @@ def test_cli_info_prints_the_provenance(capsys):
     assert main(["info", "p2b-kitti2-u"]) == 0
     out = capsys.readouterr().out
     assert "setting: kitti-2" in out and "config_file: configs/checkpoints/p2b-kitti2-u.yaml" in out
+    assert "categories trained on, every stage: Car, Cyclist, Van" in out
     assert main(["info", "--json", "p2b-kitti1-w"]) == 0
     data = json.loads(capsys.readouterr().out)
     assert data["tracker"] == "p2b" and data["provenance"]["parent"]["name"].startswith("p2b")

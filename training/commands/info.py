@@ -53,4 +53,9 @@ def run(args: argparse.Namespace) -> int:
             continue
         print(f"file: {path}\ntracker: {tracker.name}\nsha256: {entry['sha256']}")
         print(entry["provenance"].format())
+        categories = entry["provenance"].trained_categories()  # the whole lineage
+        print(
+            "categories trained on, every stage: "
+            + ("unknown" if categories is None else ", ".join(categories))
+        )
     return 0
