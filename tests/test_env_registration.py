@@ -62,9 +62,6 @@ def test_make_vec_async_module_qualified(kitti_root):
 
 
 def test_make_synthetic_tiny():
-    synthetic = pytest.importorskip("envs.synthetic")
-    if not hasattr(synthetic, "ensure_world"):
-        pytest.skip("envs.synthetic.ensure_world not available yet")
     env = gym.make(
         "pointtrack/Synthetic-v0",
         preset="tiny",

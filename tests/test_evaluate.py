@@ -192,9 +192,6 @@ def test_demo_balanced_subset():
 
 
 def test_cli_demo_tiny(tmp_path, capsys):
-    synthetic = pytest.importorskip("envs.synthetic")
-    if not hasattr(synthetic, "ensure_world"):
-        pytest.skip("envs.synthetic.ensure_world not available yet")
     from training.cli import main
 
     rc = main(

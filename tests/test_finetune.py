@@ -70,6 +70,15 @@ def test_ppo_run_writes_an_ordinary_tracker_checkpoint(tmp_path, data):
     tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
     changed = [k for k, v in tuned.state_dict().items() if not torch.equal(v, base.state_dict()[k])]
     assert changed and all(k.startswith("head.") for k in changed)  # train_parts="head"
+    provenance = tuned.provenance  # its own, not the base's (training.provenance)
+    assert (provenance.written_by, provenance.steps, provenance.parent["name"]) == (
+        "finetune",
+        32,
+        "p2b-kitti1-u",
+    )
+    assert provenance.parent["provenance"] == base.provenance
+    snapshot = trackers.load(out / "snapshots/tracker-00000016.safetensors")
+    assert snapshot.provenance.steps == 16
     assert log_steps(out) == [8, 16, 24, 32]
     records = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert records[0]["actor_frozen"] and not records[1]["actor_frozen"]
@@ -469,11 +478,14 @@ def test_every_finetune_flag_reaches_the_config():
         "snapshot_every": ("4", 4),
         "val_max_tracklets": ("5", 5),
     }
-    assert set(given) == set(fields)
+    switches = {"allow_held_out"}  # store_true flags
+    assert set(given) | switches == set(fields)
     argv = []
     for dest, (text, _) in given.items():
         argv += ["--" + dest.replace("_", "-"), text]
-    cfg = build_config(parser.parse_args(argv))
+    cfg = build_config(parser.parse_args(argv + ["--" + d.replace("_", "-") for d in switches]))
     for dest, (_, expected) in given.items():
         value = getattr(cfg, dest)
         assert value == expected and type(value) is type(expected), dest
+    assert all(getattr(cfg, d) is True for d in switches)
+    assert build_config(parser.parse_args(argv)).allow_held_out is False

@@ -153,9 +153,9 @@ def test_resume_exact_with_a_real_tracker(tmp_path):
 def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
     """``init_weights`` copies a saved tracker's weights into the run's model before step 1 (so
     zero epochs of training would return them unchanged) and refuses another tracker or config."""
-    trackers = pytest.importorskip("trackers")
     from test_pretrain_support import fake_tracklets
 
+    import trackers
     from training.config import tracker_config
     from training.pretrain import Trainer
     from training.samples import TrackingSamples

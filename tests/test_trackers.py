@@ -406,7 +406,6 @@ def test_load_errors(tmp_path, toy):
 def test_load_by_name_gives_fresh_trackers_and_baselines():
     assert isinstance(trackers.load("gpt"), trackers.make("gpt").__class__)
     assert "p2b" in trackers.available() and "previous_box" in trackers.available()
-    pytest.importorskip("trackers.baselines")
     base = trackers.load("constant_velocity")
     motion = np.array([0.5, 0.1, 0.0, 0.02], np.float32)
     np.testing.assert_array_equal(base.act({"motion": motion}), motion)

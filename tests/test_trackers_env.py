@@ -7,9 +7,7 @@ import pytest
 import torch
 
 import trackers
-
-tracking_env = pytest.importorskip("envs.tracking_env")
-
+from envs import tracking_env
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -47,8 +45,6 @@ def test_eval_fast_paths_equal_the_plain_path_on_env_observations(name, env):
     and de-duplicated groups, P2B's knot interpolation) give the plain path's outputs."""
     from test_trackers import assert_outputs_close, reference_outputs
 
-    if name not in trackers.available():
-        pytest.skip(f"{name} is not available")
     torch.manual_seed(0)
     model = trackers.load(name).eval()
     observations = []

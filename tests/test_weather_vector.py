@@ -41,9 +41,6 @@ def _nan_equal(x, y) -> bool:
 
 @pytest.mark.slow
 def test_vector_with_one_env_equals_single_env_tiny_world(one_torch_thread):
-    synthetic = pytest.importorskip("envs.synthetic")
-    if not hasattr(synthetic, "ensure_world"):
-        pytest.skip("envs.synthetic.ensure_world not available yet")
     import trackers
     from envs.tracking_env import make_synthetic_env
 
@@ -105,9 +102,6 @@ def test_bad_num_envs_and_fog_mode():
 
 
 def test_cli_weather_with_num_envs(tmp_path, capsys):
-    synthetic = pytest.importorskip("envs.synthetic")
-    if not hasattr(synthetic, "ensure_world"):
-        pytest.skip("envs.synthetic.ensure_world not available yet")
     import json
 
     from training.cli import main

@@ -228,6 +228,11 @@ def prepare_observation(
         tensor = tensor.to(device=device, dtype=torch.float32)
         if not torch.isfinite(tensor).all():
             raise ValueError(f"observation[{key!r}] contains NaN or inf values")
+        if key == "size" and not bool((tensor > 0).all()):  # a box needs l, w, h > 0 (metres)
+            raise ValueError(
+                f"observation['size'] must be > 0 (l, w, h in metres), got "
+                f"{tensor[(tensor <= 0).any(dim=1)][0].tolist()}"
+            )
         out[key] = tensor
     return out, bool(single)
 

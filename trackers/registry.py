@@ -14,14 +14,16 @@ Checkpoint formats (never an arbitrary pickle):
 * ``.pt`` / ``.pth``: ``{"format", "version", "tracker", "config": <JSON str>, "state_dict"}``
   written by ``torch.save`` and read with ``torch.load(weights_only=True)``.
 
-Both formats carry an optional ``env_options`` entry (JSON): the ``TrackingEnv`` options the
-tracker must be evaluated with (``tracker.env_options``, keys in :data:`ENV_OPTION_KEYS`, e.g. a
-recipe-v2 tracker's ``template_mode``). It is written only when not empty; a file without it
-(every checkpoint written before it existed) loads with ``{}``: the env's defaults.
+Both formats carry an optional ``provenance`` entry (JSON, :mod:`trackers.provenance`: what
+the weights were trained and chosen on) and an optional ``env_options`` entry (JSON): the
+``TrackingEnv`` options the tracker must be evaluated with (``tracker.env_options``, keys in
+:data:`ENV_OPTION_KEYS`, e.g. a recipe-v2 tracker's ``template_mode``). Each is written only when
+known; a file without ``env_options`` loads with ``{}`` (the env's defaults), one without
+``provenance`` with every field ``"unknown"``.
 
 Integrity: a shipped checkpoint (``trackers/checkpoints/``) loads only when its SHA-256 matches
 ``trackers/checkpoints/manifest.json`` (:func:`write_manifest` records it); no checkpoint loads with
-NaN or inf weights.
+NaN or inf weights, and none is saved with them.
 
 ``load(name_or_path)``: an existing file; else a shipped checkpoint
 ``trackers/checkpoints/<name>.safetensors`` (or ``.pt``); else a registered tracker name (a fresh,
@@ -221,11 +223,14 @@ def make(name: str, **config: Any):
     return tracker_class(name)(**config)
 
 
-def save(tracker: Any, path: str | Path) -> Path:
-    """Write ``tracker`` (a learned tracker) with its config and its non-empty ``env_options``
-    to ``path`` (atomically)."""
+def save(tracker: Any, path: str | Path, *, provenance: Any = None) -> Path:
+    """Write ``tracker`` (a learned tracker) with its config, its non-empty ``env_options`` and
+    its provenance (``provenance``, else ``tracker.provenance``; none: the key is left out) to
+    ``path`` (atomically). NaN or inf weights are refused, naming the tensor: ``load`` would
+    refuse the file."""
     from trackers.base import Tracker
     from trackers.config import config_to_dict
+    from trackers.provenance import METADATA_KEY
 
     if not isinstance(tracker, Tracker):
         raise TypeError(f"only learned trackers have weights to save, got {type(tracker).__name__}")
@@ -239,7 +244,11 @@ def save(tracker: Any, path: str | Path) -> Path:
     config_json = json.dumps(config_to_dict(tracker.config), sort_keys=True)
     options_json = env_options_metadata(tracker)
     extra = {} if options_json is None else {"env_options": options_json}
+    provenance = provenance if provenance is not None else getattr(tracker, "provenance", None)
+    if provenance is not None:
+        extra[METADATA_KEY] = provenance.to_json()
     state = {k: v.detach().cpu().contiguous() for k, v in tracker.state_dict().items()}
+    _check_finite(path, state, "refusing to save")
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         if path.suffix in (".pt", ".pth"):
@@ -286,7 +295,7 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
             ) from exc
         if not isinstance(blob, dict) or "state_dict" not in blob:
             raise ValueError(f"{path} is not a pointtrack tracker checkpoint (no state_dict)")
-        keys = ("format", "version", "tracker", "config", "env_options")
+        keys = ("format", "version", "tracker", "config", "env_options", "provenance")
         meta = {k: blob[k] for k in keys if k in blob}
         return meta, blob["state_dict"]
     return read_safetensors(path, "tracker checkpoint")
@@ -373,7 +382,9 @@ def _verify_shipped(path: Path) -> None:
         )
 
 
-def _check_finite(path: Path, state: dict[str, torch.Tensor]) -> None:
+def _check_finite(
+    path: Path, state: dict[str, torch.Tensor], action: str = "refusing to load"
+) -> None:
     for key, value in state.items():
         if (
             isinstance(value, torch.Tensor)
@@ -382,8 +393,7 @@ def _check_finite(path: Path, state: dict[str, torch.Tensor]) -> None:
         ):
             bad = int((~torch.isfinite(value)).sum())
             raise ValueError(
-                f"{path}: tensor {key!r} has {bad} NaN or inf value(s) of "
-                f"{value.numel()}; refusing to load"
+                f"{path}: tensor {key!r} has {bad} NaN or inf value(s) of {value.numel()}; {action}"
             )
 
 
@@ -398,7 +408,10 @@ def _migrate(config: dict[str, Any]) -> dict[str, Any]:
 
 def load_file(path: str | Path, expect: str | None = None, map_location: Any = "cpu"):
     """Load a checkpoint file -> tracker in eval mode on ``map_location``, its ``env_options``
-    restored (``{}`` when the file records none)."""
+    restored (``{}`` when the file records none) and its ``provenance``
+    (:class:`trackers.provenance.Provenance`, every field unknown when the file records none)."""
+    from trackers.provenance import METADATA_KEY, Provenance
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no tracker checkpoint at {path}")
@@ -435,6 +448,7 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
             f"{path}: weights do not match a {name!r} with the stored config: {exc}"
         ) from exc
     model.env_options = env_options
+    model.provenance = Provenance.from_json(meta.get(METADATA_KEY), f"{path}: provenance metadata")
     return model.to(map_location).eval()
 
 

@@ -198,7 +198,12 @@ def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
 
     Raises :class:`CheckpointError` naming ``path`` for a file that is not a training checkpoint
     and naming the tensor for non-finite weights."""
-    ckpt = read_checkpoint(path)
+    return _validated_weights(read_checkpoint(path), path)
+
+
+def _validated_weights(
+    ckpt: Mapping[str, Any], path: str | Path
+) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     average = ckpt.get("ema") or {}
     weights = average.get("shadow") or ckpt["model"]
     for name, tensor in weights.items():
@@ -210,15 +215,19 @@ def load_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, A
 def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
     """The tracker (CPU, eval mode) holding the validated weights of a training checkpoint
     (:func:`load_weights`), with the env options its run was validated with
-    (``tracker.env_options``, :func:`training.config.checkpoint_env_options`), ready for
+    (``tracker.env_options``, :func:`training.config.checkpoint_env_options`) and the
+    provenance it records (``tracker.provenance``, :mod:`training.provenance`), ready for
     ``trackers.save`` or evaluation."""
     import trackers
     from training.config import checkpoint_env_options, checkpoint_tracker_kwargs
+    from training.provenance import checkpoint_provenance
 
-    weights, config = load_weights(path)
+    ckpt = read_checkpoint(path)
+    weights, config = _validated_weights(ckpt, path)
     model = trackers.make(config["tracker"], **checkpoint_tracker_kwargs(config))
     model.load_state_dict(weights)
     model.env_options = checkpoint_env_options(config)
+    model.provenance = checkpoint_provenance(ckpt)
     return model.eval()
 
 

@@ -2,8 +2,8 @@
 
 Error policy: an expected error (bad input, a missing or unwritable path, a refused resume, an
 unavailable device) prints one line ``pointtrack COMMAND: message`` on stderr and exits with
-status 2; ``--traceback`` shows the full traceback instead. Anything else is a bug and keeps its
-traceback.
+status 2; ``--traceback`` shows the full traceback instead. Ctrl-C prints ``interrupted`` and
+exits with status 130. Anything else is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "finetune": ("finetune", "RL fine-tuning of a pretrained tracker with stable-baselines3"),
     "bench": ("bench", "run the speed benchmarks and print their numbers"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),
+    "info": ("info", "print a checkpoint's provenance: what it was trained and chosen on"),
 }
 
 # The exception types a command raises for expected errors (their message is the whole story).
@@ -78,6 +79,9 @@ def main(argv: list[str] | None = None) -> int:
     prefix = f"pointtrack {args.command}: "
     try:
         return int(_command_module(args._module).run(args) or 0)
+    except KeyboardInterrupt:  # Ctrl-C: one line, the shell's status for SIGINT
+        print(f"{prefix}interrupted", file=sys.stderr)
+        return 130
     except SystemExit as exc:
         if isinstance(exc.code, str):  # a command's own refusal: one line, status 2
             if args.traceback:

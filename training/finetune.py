@@ -55,6 +55,8 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from training.provenance import check_finetune_categories, finetune_provenance
+
 __all__ = [
     "ALGOS",
     "FinetuneConfig",
@@ -127,6 +129,8 @@ class FinetuneConfig:
     save_every: int = 1  # updates between resume checkpoints
     snapshot_every: int = 0  # updates between tracker snapshots (0: none)
     val_max_tracklets: int = 8
+    # train in an env serving a category the base file holds out (training.provenance)
+    allow_held_out: bool = False
 
     def validate(self) -> None:
         """Raise :class:`FinetuneError` naming every offending field."""
@@ -576,6 +580,7 @@ class _PPORun:
             trackers.save(
                 self.policy.tracker,
                 self.out / "snapshots" / f"tracker-{self.model.num_timesteps:08d}.safetensors",
+                provenance=finetune_provenance(self.cfg, self.model.num_timesteps),
             )
 
     def _non_finite(self, what: str) -> None:
@@ -681,7 +686,11 @@ class _PPORun:
                 self.bar.close()
             self.log_file.close()
             self.env.close()
-        path = trackers.save(self.policy.tracker, self.out / "tracker.safetensors")
+        path = trackers.save(
+            self.policy.tracker,
+            self.out / "tracker.safetensors",
+            provenance=finetune_provenance(cfg, self.model.num_timesteps),
+        )
         self.checkpoint(finished=True)
         wall = time.perf_counter() - self.t0
         done = self.model.num_timesteps - self.steps_at_start
@@ -741,6 +750,7 @@ def finetune(
     else:
         from training.evaluate import observation_keys_for
 
+        check_finetune_categories(base, cfg.setting, cfg.allow_held_out)
         factory = train_env_factory(cfg, base.env_options, observation_keys_for([base]))
     out.mkdir(parents=True, exist_ok=True)
     _atomic_write_text(out / "config.json", json.dumps(_identity(cfg), indent=2) + "\n")

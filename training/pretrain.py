@@ -423,10 +423,13 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict[str, Any]:
+        from training.provenance import train_provenance
+
+        cfg_dict = self.cfg.to_dict()
         return {
             "format": CHECKPOINT_FORMAT,
             "tracker": self.cfg.tracker,
-            "config": self.cfg.to_dict(),
+            "config": cfg_dict,
             "model": {k: v.detach().cpu().clone() for k, v in self.model.state_dict().items()},
             "optimizer": self.base_opt.state_dict(),
             "scheduler": self.scheduler.state_dict(),
@@ -439,6 +442,9 @@ class Trainer:
             "best_val": self.best_val,
             "best_epoch": self.best_epoch,
             "history": json.dumps(self.history),
+            "provenance": train_provenance(
+                cfg_dict, getattr(self.data, "root", None), self.step
+            ).to_json(),
         }
 
     def load(self, path: Path) -> None:

@@ -39,6 +39,7 @@ __all__ = [
     "pooled",
     "ranking_uncertainty",
     "score_candidates",
+    "tied_with_first",
 ]
 
 _SPLITS = ("train", "val", "test")
@@ -161,6 +162,25 @@ def _candidate_digest(candidate: str) -> str:
     return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def _refuse_same_file(digests: Mapping[str, str]) -> None:
+    """One file given twice (a shipped name and its path, two paths) would be scored twice
+    and tie with itself: refuse it, naming both."""
+    seen: dict[str, str] = {}
+    for candidate, digest in digests.items():
+        if digest.startswith("sha256:") and digest in seen:
+            raise ValueError(
+                f"candidates {seen[digest]!r} and {candidate!r} are the same file "
+                f"(SHA-256 {digest[len('sha256:') :][:16]}...); give it once"
+            )
+        seen.setdefault(digest, candidate)
+
+
+def tied_with_first(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The candidates after the first whose pooled Success equals the first's exactly (a tie
+    the ranking's order does not decide)."""
+    return [str(r["candidate"]) for r in rows[1:] if r["success"] == rows[0]["success"]]
+
+
 def _cache_path(cache_dir: Path, part: ValPart, candidate: str, digest: str) -> Path:
     stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", Path(candidate).name)[:60]
     return cache_dir / f"w{part.world_seed}-{part.split}" / f"{stem}-{digest[-12:]}.json"
@@ -200,6 +220,7 @@ def score_candidates(
         observation_keys_for,
         save_report,
     )
+    from training.provenance import check_candidates
 
     config = config if config is not None else SelectionConfig()
     if not candidates:
@@ -209,7 +230,9 @@ def score_candidates(
     observed = list(get_setting(config.setting).observed)
     # all of them before any scoring, so a typo fails in a second
     loaded = {c: load_candidate(c) for c in candidates}
+    check_candidates(loaded, config, log)  # none trained on the parts or the unseen categories
     digests = {c: _candidate_digest(c) for c in candidates}
+    _refuse_same_file(digests)
     cache = Path(cache_dir) if cache_dir is not None else None
     if cache is not None:  # temporaries of a killed selection (reports are renamed into place)
         from training.checkpoint import remove_stale_temps

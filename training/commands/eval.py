@@ -56,6 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="allow a learned tracker's bare name (p2b, bat, gpt): a randomly initialised "
         "model seeded by --eval-seed (without this flag such a name is refused)",
     )
+    parser.add_argument(
+        "--strict",
+        action="store_true",
+        help="refuse, instead of warning, a tracker whose provenance says it trained or was "
+        "selected on the data evaluated, or trained on a category the setting holds out",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --weather, --weather-levels, --weather-seed, --no-analysis (training.robustness, issue 7)
     from training.robustness import add_weather_arguments
@@ -191,12 +197,14 @@ def run(args: argparse.Namespace) -> int:
         plot_curves,
         save_report,
     )
+    from training.provenance import eval_guard, mark_unseen
 
     check_args(args)
     if getattr(args, "weather", None):
         return _run_weather(args)
     # every tracker before any data or evaluation, so a typo in the last one fails in a second
     loaded = load_trackers(args)
+    trained = eval_guard(loaded, args)  # provenance: leaks warned (--strict: refused)
     check_out(args)
     reports = {}
     # one env per distinct option set the trackers record (e.g. recipe v2's template mode)
@@ -221,6 +229,7 @@ def run(args: argparse.Namespace) -> int:
             )
         env.close()
     reports = {name: reports[name] for name in loaded}  # the order of --tracker
+    reports = mark_unseen(reports, trained)  # unseen: only what the file never trained on
     print(format_table(reports))
     if args.out:
         from pathlib import Path
@@ -279,9 +288,11 @@ def _run_weather(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from training.evaluate import env_option_groups, observation_keys_for
+    from training.provenance import eval_guard
     from training.robustness import run_weather_eval
 
     loaded = load_trackers(args)
+    eval_guard(loaded, args)  # provenance: leaks warned (--strict: refused)
     check_out(args)
     bases = {}  # tracker name -> the clean env of its option set (one per distinct set)
     for options, names in env_option_groups(loaded, explicit_env_options(args)):

@@ -108,6 +108,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--snapshot-every, --val-max-tracklets",
     )
     add("--overwrite", action="store_true", help="replace a run already in --out")
+    add(
+        "--allow-held-out",
+        action="store_true",
+        help="train in an env that serves a category the base file holds out (its setting's "
+        "unseen ones; refused without this flag)",
+    )
     add("--no-progress", action="store_true", help="no progress bar")
 
 

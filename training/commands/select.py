@@ -57,6 +57,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="write DIR/selection.json; per-part reports are kept in DIR/parts for reruns",
     )
+    parser.add_argument(
+        "--save",
+        default=None,
+        metavar="FILE.safetensors",
+        help="write the first-ranked candidate as a tracker file whose provenance records this "
+        "selection (the rule, the parts, every candidate's score)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
@@ -70,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
         format_ranking,
         ranking_uncertainty,
         score_candidates,
+        tied_with_first,
     )
 
     try:
@@ -95,10 +103,19 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise SystemExit(f"pointtrack select: {exc}") from exc
     print(format_ranking(rows, uncertainty))
-    print(
-        f"selected: {rows[0]['candidate']} (pooled observed Success {rows[0]['success']:.2f}; "
-        f"ranked first in {uncertainty[0]['p_first']:.0%} of tracklet resamples)"
-    )
+    tied = tied_with_first(rows)
+    if tied:  # the resamples give a tie to the row listed first: no evidence either way
+        print(
+            f"tie: {rows[0]['candidate']} and {', '.join(tied)} pool exactly the same observed "
+            f"Success ({rows[0]['success']:.2f}); {rows[0]['candidate']} is listed (and "
+            "selected) first only because it was given first"
+        )
+    else:
+        print(
+            f"selected: {rows[0]['candidate']} (pooled observed Success "
+            f"{rows[0]['success']:.2f}; ranked first in {uncertainty[0]['p_first']:.0%} of "
+            "tracklet resamples)"
+        )
     if out is not None:
         summary = {
             "config": {**vars(config), "parts": [str(p) for p in config.parts]},
@@ -106,4 +123,8 @@ def run(args: argparse.Namespace) -> int:
         }
         path = save_report(summary, out / "selection.json")
         print(f"wrote {path}")
+    if args.save:
+        from training.provenance import save_selected
+
+        print(f"wrote {save_selected(rows, config, args.save)}")
     return 0
