@@ -12,6 +12,8 @@ import argparse
 import importlib
 import sys
 
+from training.extras import MissingExtraError
+
 # name -> (module under training.commands, one-line help). Modules are imported only when their
 # command runs, so `pointtrack --help` stays fast and one broken command cannot break the others.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -21,11 +23,18 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "select": ("select", "rank checkpoints by observed Success pooled over validation worlds"),
     "finetune": ("finetune", "RL fine-tuning of a pretrained tracker with stable-baselines3"),
     "bench": ("bench", "run the speed benchmarks and print their numbers"),
+    "render": ("render", "watch trackers on one tracklet: a video or a rerun 3D recording"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),
 }
 
 # The exception types a command raises for expected errors (their message is the whole story).
-EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, KeyError)
+# A missing optional package is one too: its message names the `pip install` command.
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError,
+    OSError,
+    KeyError,
+    MissingExtraError,
+)
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
