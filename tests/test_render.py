@@ -92,9 +92,12 @@ def test_render_video_has_one_frame_per_tracked_frame(tmp_path, suffix, one_torc
     frames = iio.imread(out, index=None, plugin=plugin)
     assert frames.shape == (4, 288, 512, 3)
     assert not list(tmp_path.glob(".*tmp*"))  # the atomic write left no temporary
-    # --max-frames cuts the episode
-    assert main([*argv, *ARGS, "--out", str(out), "--max-frames", "2"]) == 0
+    # --max-frames cuts the episode; the same seed gives the same bytes
+    cut = tmp_path / f"cut{suffix}"
+    for path in (cut, out):
+        assert main([*argv, *ARGS, "--out", str(path), "--max-frames", "2"]) == 0
     assert iio.imread(out, index=None, plugin=plugin).shape[0] == 2
+    assert out.read_bytes() == cut.read_bytes()
 
 
 def test_render_refuses_bad_input_naming_it(tmp_path, capsys):

@@ -91,6 +91,7 @@ def write_recording(
         raise ValueError("write_recording: no episode to log")
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.rrd")
+    # the same content for the same episodes; not the same bytes (rerun's chunk ids are unique)
     rec = rr.RecordingStream("pointtrack", recording_id=f"{traces[0].tracklet}")
     try:
         rec.save(tmp)
