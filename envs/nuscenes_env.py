@@ -38,8 +38,12 @@ def make_nuscenes_env(
         version: the table folder (default ``v1.0-trainval`` for a root, ``v1.0-mini`` for the
             synthetic world).
         split: an official split; ``"val"`` (default) is the SOT test split.
-        setting, categories: as for :class:`TrackingEnv` (``nuscenes-1``, ``nuscenes-2``...).
-        preset, sensor, seed, cache_dir: the synthetic world, when ``root`` is ``None``.
+        setting: as for :class:`TrackingEnv` (``nuscenes-1``, ``nuscenes-2``...).
+        categories: as for :class:`TrackingEnv`.
+        preset: the synthetic world's preset, when ``root`` is ``None``.
+        sensor: the synthetic world's LiDAR profile, when ``root`` is ``None``.
+        seed: the synthetic world's seed, when ``root`` is ``None``.
+        cache_dir: where the synthetic world is generated (default: the cache).
         env_kwargs: any other :class:`TrackingEnv` keyword; ``max_action`` defaults to
             :data:`NUSCENES_MAX_ACTION`.
     """

@@ -500,6 +500,26 @@ def test_render(toy):
         assert TrackingEnv(toy).render() is None
 
 
+def test_record_video_wrapper(toy, tmp_path):
+    """Gymnasium's RecordVideo (moviepy, the video extra) records the env's rgb_array: one video
+    frame after reset and one per step."""
+    pytest.importorskip("moviepy", reason="the video extra (moviepy) is not installed")
+    iio = pytest.importorskip("imageio.v3", reason="the video extra is not installed")
+    from gymnasium.wrappers import RecordVideo
+
+    env = RecordVideo(
+        TrackingEnv(toy, render_mode="rgb_array"),
+        str(tmp_path / "v"),
+        episode_trigger=lambda e: True,
+    )
+    steps = len(run_episode(env, zero_policy, seed=0, options={"tracklet": 2})[1]) - 1
+    env.close()
+    (video,) = (tmp_path / "v").glob("*.mp4")
+    frames = iio.imread(video, index=None, plugin="FFMPEG")
+    assert steps == len(toy.tracklets[2]) - 1
+    assert frames.shape == (steps + 1, 256, 256, 3)
+
+
 # --------------------------------------------------------------------------- bad input
 
 

@@ -335,7 +335,7 @@ def test_row18_missing_root_unwritable_out_and_cache_no_cuda(tmp_path, capsys, m
 def test_every_help_shows_every_flag_without_markup(capsys):
     from training.cli import COMMANDS
 
-    for name in ("generate", "eval", "train", "select", "demo", "bench"):
+    for name in ("generate", "eval", "train", "select", "demo", "bench", "render"):
         assert name in COMMANDS
         with pytest.raises(SystemExit) as done:
             main([name, "--help"])
@@ -344,7 +344,7 @@ def test_every_help_shows_every_flag_without_markup(capsys):
         assert "``" not in text and ":mod:" not in text and ":func:" not in text, name
     parser = __import__("training.cli", fromlist=["build_parser"]).build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    for name in ("generate", "eval", "train", "select", "demo", "bench"):
+    for name in ("generate", "eval", "train", "select", "demo", "bench", "render"):
         for action in sub.choices[name]._actions:
             if action.dest == "help":
                 continue

@@ -259,6 +259,7 @@ def test_every_train_flag_reaches_the_config():
         "val_max_frames": ("11", "val_max_frames", 11),
         "nuscenes_version": ("v1.0-mini", "nuscenes_version", "v1.0-mini"),
         "drct_variant": ("siamese", "drct_variant", "siamese"),
+        "logger": ("tensorboard,csv", "logger", "tensorboard,csv"),
     }
     flags = {a.dest: a.option_strings[0] for a in parser._actions if a.dest not in not_config}
     missing = set(flags) - set(given)
@@ -320,3 +321,76 @@ def test_ema_run_validates_and_exports_the_average_and_resumes_exactly(tmp_path)
         _run(tmp_path / "cut", epochs=3, resume=True)
     with pytest.raises(ConfigError, match=r"ema_decay=1\.0: must be in \[0, 1\)"):
         config_from_dict({"ema_decay": 1.0})
+
+
+# --------------------------------------------------------------------------- scalar logger
+def _progress(run, drop=("samples_per_s", "epoch_wall_s")):
+    """OUT/logs/progress.csv as rows, without the wall-clock columns (they differ per run)."""
+    import csv
+
+    with open(run / "logs" / "progress.csv") as f:
+        rows = list(csv.DictReader(f))
+    return [{k: v for k, v in r.items() if not k.endswith(drop)} for r in rows]
+
+
+def test_scalars_go_to_csv_json_and_tensorboard(tmp_path):
+    """Every number of log.jsonl reaches OUT/logs as KIND/NAME at its step, in each output."""
+    import json
+
+    val = lambda m: {"success": 1.0, "precision": 2.0}  # noqa: E731
+    _run(tmp_path / "a", epochs=2, iters_per_epoch=6, val_fn=val)  # train records every 10 steps
+    records = [json.loads(x) for x in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    assert [r["kind"] for r in records] == ["data", "epoch", "train", "epoch"]
+    dumps = [json.loads(x) for x in (tmp_path / "a" / "logs" / "progress.json").open()]
+    assert dumps == [
+        {
+            f"{r['kind']}/{k}": v
+            for k, v in r.items()
+            if k not in ("kind", "step") and isinstance(v, int | float | str)
+        }
+        for r in records
+    ]
+    rows = _progress(tmp_path / "a")
+    assert len(rows) == 4 and [r["epoch/val_success"] for r in rows] == ["", "1.0", "", "1.0"]
+    assert not list((tmp_path / "a" / "logs").glob("events.out.tfevents.*"))
+
+    pytest.importorskip("tensorboard", reason="the tensorboard extra is not installed")
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    _run(tmp_path / "b", epochs=2, iters_per_epoch=6, val_fn=val, logger="tensorboard")
+    events = EventAccumulator(str(tmp_path / "b" / "logs"))
+    events.Reload()
+    success = events.Scalars("epoch/val_success")
+    assert [(e.step, e.value) for e in success] == [(6, 1.0), (12, 1.0)]
+    assert [e.step for e in events.Scalars("train/total")] == [10]
+    assert not (tmp_path / "b" / "logs" / "progress.csv").exists()
+
+
+def test_resumed_scalars_equal_an_uninterrupted_runs(tmp_path):
+    """The outputs are rewritten from log.jsonl on resume: no rows of the killed attempt (the
+    resumed attempt records its data once more, as log.jsonl does)."""
+    _run(tmp_path / "full", epochs=3, iters_per_epoch=6)
+    _run(tmp_path / "cut", epochs=1, iters_per_epoch=6)
+    # the killed attempt had logged a step past the checkpoint: log.jsonl is cut back to it
+    with open(tmp_path / "cut" / "log.jsonl", "a") as f:
+        f.write('{"kind": "train", "step": 9, "total": 123.0}\n')
+    _run(tmp_path / "cut", epochs=3, iters_per_epoch=6, resume=True)
+    full, cut = _progress(tmp_path / "full"), _progress(tmp_path / "cut")
+    assert "123.0" not in {v for r in cut for v in r.values()}
+    assert [r for r in cut if not r["data/samples"]] == [r for r in full if not r["data/samples"]]
+    assert len(cut) == len(full) + 1 and len(full) == 5  # data, 3 epochs, step 10
+
+
+def test_logger_choice_is_checked_before_training(tmp_path, capsys, monkeypatch):
+    import sys
+
+    from training.cli import main
+
+    with pytest.raises(ConfigError, match="logger='csv,wandb'"):
+        config_from_dict({"logger": "csv,wandb"})
+    monkeypatch.setitem(sys.modules, "tensorboard", None)
+    out = tmp_path / "x"
+    assert main(["train", "--tracker", "p2b", "--out", str(out), "--logger", "tensorboard"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and 'pip install "pointtrack[tensorboard]"' in err
+    assert not out.exists()

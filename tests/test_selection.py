@@ -144,6 +144,8 @@ def test_cli_select_refuses_bad_input_naming_it(tmp_path, capsys):
         (["previous_box", "--parts", "2:dev"], "'2:dev'"),
         (["no-such.safetensors", "--parts", "1:val"], "candidate 'no-such.safetensors'"),
         (["previous_box", "previous_box", "--parts", "1:val"], "listed twice"),
+        (["previous_box", "--logger", "csv"], "--logger writes into --out"),
+        (["previous_box", "--logger", "csv,wandb", "--out", str(tmp_path)], "'csv,wandb'"),
     ):
         assert main(["select", *argv]) == 2
         err = capsys.readouterr().err
@@ -285,12 +287,21 @@ def test_cli_select_prints_and_saves_the_bootstrap_and_the_script_rebuilds_it(
     out = tmp_path / "sel"
     argv = ["select", "previous_box", "constant_velocity", "--preset", "tiny", "--num-envs", "1"]
     assert main([*argv, "--parts", "0:val", "1:val", "--out", str(out), "--no-progress"]) == 0
-    printed = capsys.readouterr().out
+    captured = capsys.readouterr()
+    printed = captured.out
     assert "P(1st)" in printed
     # constant_velocity's velocity starts at 0 and stays there: an exact tie, reported as one
     assert "tie: previous_box and constant_velocity pool exactly the same" in printed
     assert "of tracklet resamples" not in printed
+    assert "0:val previous_box: scored, observed Success" in captured.err  # logging, stderr
     saved = json.loads((out / "selection.json").read_text())["ranking"]
+    # the ranking as scalars (stable-baselines3's logger): one step per rank
+    dumps = [json.loads(line) for line in (out / "logs" / "progress.json").open()]
+    assert [d["select/candidate"] for d in dumps] == [row["candidate"] for row in saved]
+    assert [d["select/success"] for d in dumps] == [row["success"] for row in saved]
+    assert [d["select/success_w1_val"] for d in dumps] == [
+        row["parts"]["1:val"]["success"] for row in saved
+    ]
     assert ranking_uncertainty(saved) == [row["uncertainty"] for row in saved]
     stale = next((out / "parts").rglob("previous_box-*.json"))
     report = json.loads(stale.read_text())

@@ -1,5 +1,9 @@
 """The ``pointtrack`` command line: one sub-command per module in training.commands.
 
+Messages of the library (``logging.getLogger(__name__)`` in each module) are printed as plain
+lines on stderr at INFO and above (:func:`configure_logging`); progress bars are tqdm's; results
+(tables, ``wrote ...``) are printed on stdout.
+
 Error policy: an expected error (bad input, a missing or unwritable path, a refused resume, an
 unavailable device) prints one line ``pointtrack COMMAND: message`` on stderr and exits with
 status 2; ``--traceback`` shows the full traceback instead. Ctrl-C prints ``interrupted`` and
@@ -10,7 +14,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
+
+from training.extras import MissingExtraError
 
 # name -> (module under training.commands, one-line help). Modules are imported only when their
 # command runs, so `pointtrack --help` stays fast and one broken command cannot break the others.
@@ -21,12 +28,19 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "select": ("select", "rank checkpoints by observed Success pooled over validation worlds"),
     "finetune": ("finetune", "RL fine-tuning of a pretrained tracker with stable-baselines3"),
     "bench": ("bench", "run the speed benchmarks and print their numbers"),
+    "render": ("render", "watch trackers on one tracklet: a video or a rerun 3D recording"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),
     "info": ("info", "print a checkpoint's provenance: what it was trained and chosen on"),
 }
 
 # The exception types a command raises for expected errors (their message is the whole story).
-EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError, KeyError)
+# A missing optional package is one too: its message names the `pip install` command.
+EXPECTED_ERRORS: tuple[type[BaseException], ...] = (
+    ValueError,
+    OSError,
+    KeyError,
+    MissingExtraError,
+)
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
@@ -74,8 +88,36 @@ def _command_module(module: str):
     return importlib.import_module(f"training.commands.{module}")
 
 
+# the packages whose loggers the command line shows
+LOGGED_PACKAGES = ("envs", "trackers", "training")
+
+
+class _StderrHandler(logging.Handler):
+    """Writes to the ``sys.stderr`` of the moment (a handler made once would keep the stream of
+    its creation, e.g. a test's captured one)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            print(self.format(record), file=sys.stderr, flush=True)
+        except Exception:  # noqa: BLE001 - logging must never raise into the caller
+            self.handleError(record)
+
+
+def configure_logging(level: int = logging.INFO) -> None:
+    """Show the project's log messages at ``level`` and above as plain lines on stderr (once per
+    process; other libraries' loggers are left as they are)."""
+    for name in LOGGED_PACKAGES:
+        log = logging.getLogger(name)
+        log.setLevel(level)
+        if not any(isinstance(h, _StderrHandler) for h in log.handlers):
+            handler = _StderrHandler()
+            handler.setFormatter(logging.Formatter("%(message)s"))
+            log.addHandler(handler)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    configure_logging()
     prefix = f"pointtrack {args.command}: "
     try:
         return int(_command_module(args._module).run(args) or 0)

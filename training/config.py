@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from training.scalars import parse_formats
+
 __all__ = [
     "IDENTITY_EXEMPT",
     "LEGACY_DEFAULTS",
@@ -191,6 +193,8 @@ class TrainConfig:
     num_threads: int | None = None
     device: str = "cpu"
     progress: bool = True
+    # scalar outputs in OUT/logs (training.scalars): a comma list of csv, json, tensorboard
+    logger: str = "csv,json"
     out: str = "runs/train"
 
     def validate(self) -> TrainConfig:
@@ -256,6 +260,10 @@ class TrainConfig:
             bad("init_weights", "must be a checkpoint file or a shipped checkpoint name, or null")
         if self.grad_clip is not None and not self.grad_clip > 0:
             bad("grad_clip", "must be > 0 or null")
+        try:
+            parse_formats(self.logger)
+        except ValueError:
+            bad("logger", "must be a comma list of csv, json, tensorboard (each at most once)")
         if self.weighting == "decorrelation" and self.batch_size < 2:
             bad("batch_size", "decorrelation weighting needs batch_size >= 2")
         if self.recipe not in RECIPES:
@@ -394,6 +402,7 @@ IDENTITY_EXEMPT = frozenset(
         "num_workers",
         "num_threads",
         "progress",
+        "logger",
         "device",
         "val_every",
         "val_max_tracklets",

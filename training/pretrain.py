@@ -32,14 +32,17 @@ SAM (-S).
   by DDP (gloo on CPU, nccl on GPU); -W gathers the pooled features of the whole global batch so
   every process learns the same weights as a single process would. Only rank 0 validates, logs
   and writes checkpoints: one logical result.
-* Logs: a tqdm bar with running losses, ``log.jsonl`` (always), TensorBoard scalars when
-  ``torch.utils.tensorboard`` can be imported.
+* Logs: a tqdm bar with running losses; ``log.jsonl`` (always: the run's record); its numbers
+  as scalars in ``OUT/logs`` through stable-baselines3's logger (:mod:`training.scalars`:
+  ``logger="csv,json"`` by default, ``tensorboard`` with the extra); messages (resume, epoch
+  lines) through :mod:`logging` (``pointtrack`` configures a handler).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import os
 import time
 import warnings
@@ -74,6 +77,8 @@ from training.losses import pooled_objective
 from training.sam import SAM
 from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "TrainResult",
@@ -388,7 +393,7 @@ class Trainer:
         self.best_val: dict[str, float] | None = None
         self.best_epoch: int | None = None
         self.history: list[dict[str, Any]] = []
-        self._tb = None
+        self._scalars = None
         self._log = None
 
     def _load_init_weights(self, source: str) -> None:
@@ -478,13 +483,13 @@ class Trainer:
         if not self.main:
             return
         self.out.mkdir(parents=True, exist_ok=True)
-        self._log = open(self.out / "log.jsonl", "a")  # noqa: SIM115 - closed in _close_logs
-        try:
-            from torch.utils.tensorboard import SummaryWriter
+        from training.scalars import open_scalar_logger
 
-            self._tb = SummaryWriter(str(self.out / "tb"))
-        except Exception:  # noqa: BLE001 - tensorboard is optional
-            self._tb = None
+        # rewritten from log.jsonl (already cut back to the resumed step) before it grows
+        self._scalars = open_scalar_logger(
+            self.out / "logs", self.cfg.logger, replay=self.out / "log.jsonl"
+        )
+        self._log = open(self.out / "log.jsonl", "a")  # noqa: SIM115 - closed in _close_logs
 
     def _write(self, record: dict[str, Any]) -> None:
         if not self.main:
@@ -492,19 +497,18 @@ class Trainer:
         if self._log is not None:
             self._log.write(json.dumps(record) + "\n")
             self._log.flush()
-        if self._tb is not None:
-            step = record.get("step", self.step)
-            for k, v in record.items():
-                if k not in ("step", "epoch", "kind") and isinstance(v, int | float):
-                    self._tb.add_scalar(f"{record.get('kind', 'train')}/{k}", v, step)
+        if self._scalars is not None:
+            from training.scalars import log_record
+
+            log_record(self._scalars, record, record.get("step", self.step))
 
     def _close_logs(self) -> None:
         if self._log is not None:
             self._log.close()
             self._log = None
-        if self._tb is not None:
-            self._tb.close()
-            self._tb = None
+        if self._scalars is not None:
+            self._scalars.close()
+            self._scalars = None
 
     # ------------------------------------------------------------------ one epoch
     def _loader(self, epoch: int) -> DataLoader:
@@ -669,10 +673,9 @@ class Trainer:
                 bar.set_postfix({k: f"{running[k]:.3f}" for k in list(running)[:5]})
                 bar.update(1)
             if self.main and not cfg.progress and self.step % 25 == 0:
-                print(
+                log.info(
                     f"epoch {epoch + 1} step {self.step} "
-                    + " ".join(f"{k}={running[k]:.4g}" for k in running),
-                    flush=True,
+                    + " ".join(f"{k}={running[k]:.4g}" for k in running)
                 )
             if self.main and (self.step % 10 == 0):
                 self._write(
@@ -743,7 +746,7 @@ class Trainer:
             self.load(last)
             if self.main:
                 dropped = truncate_log(self.out / "log.jsonl", self.step)
-                print(
+                log.info(
                     f"resuming {last}: {self.epoch} epochs done, step {self.step}"
                     + (
                         f" ({dropped} log records of the interrupted attempt dropped)"
@@ -754,7 +757,7 @@ class Trainer:
         elif resume and self.main:
             # the log of an attempt killed before its first checkpoint: it starts again
             (self.out / "log.jsonl").unlink(missing_ok=True)
-            print(f"no checkpoint in {self.out} yet; starting its run from the beginning")
+            log.info(f"no checkpoint in {self.out} yet; starting its run from the beginning")
         if self.main:
             self.out.mkdir(parents=True, exist_ok=True)
             remove_stale_temps(self.out)
@@ -800,7 +803,7 @@ class Trainer:
                         for k, v in record.items()
                         if isinstance(v, float) and k != "epoch_wall_s"
                     )
-                    print(f"epoch {self.epoch}/{cfg.epochs} {msg}", flush=True)
+                    log.info(f"epoch {self.epoch}/{cfg.epochs} {msg}")
                 if self.world > 1:
                     self.pg.barrier()
         finally:

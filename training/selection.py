@@ -22,11 +22,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "DEFAULT_PARTS",
@@ -202,7 +205,8 @@ def score_candidates(
         config: the parts, setting and evaluation settings (default: :class:`SelectionConfig`).
         cache_dir: keep each (part, candidate) report here and reuse it when its key matches.
         progress: tqdm bars while evaluating.
-        log: called with one line per evaluated or reused (part, candidate).
+        log: called with one line per evaluated or reused (part, candidate) (default: this
+            module's :mod:`logging` logger, at INFO).
 
     Returns:
         One row per candidate, best first (ties keep the given order): ``{"candidate", "success",
@@ -316,11 +320,10 @@ def score_candidates(
                 k: float(entry[k]) for k in ("success", "precision", "frames")
             }
             per_tracklet[candidate].update(observed_tracklet_scores(report, str(part)))
-            if log is not None:
-                log(
-                    f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
-                    f"over {int(entry['frames'])} frames"
-                )
+            (log or logger.info)(
+                f"{part} {candidate}: {how}, observed Success {entry['success']:.1f} "
+                f"over {int(entry['frames'])} frames"
+            )
         for env in envs.values():
             env.close()
     rows = [

@@ -717,7 +717,10 @@ class KittiTracking:
 
     Attributes:
         tracklets: list ordered by scene, then track id.
-        root, split, categories (``None`` = all), scenes (scene names read).
+        root: the root folder read.
+        split: the split read.
+        categories: the categories kept (``None`` = all).
+        scenes: the scene names read.
     """
 
     def __init__(

@@ -169,8 +169,10 @@ def global_to_lidar_boxes(
         translation: ``(N, 3)`` global box centres, metres.
         size_wlh: ``(N, 3)`` sizes in nuScenes order ``(w, l, h)``, metres.
         rotation: ``(N, 4)`` global box quaternions ``(w, x, y, z)``.
-        ego_t, ego_q: ``(N, 3)``, ``(N, 4)`` ego pose (body -> global) of each box's key frame.
-        cs_t, cs_q: ``(N, 3)``, ``(N, 4)`` sensor calibration (LiDAR -> body) of that frame.
+        ego_t: ``(N, 3)`` ego position (body -> global) at each box's key frame, metres.
+        ego_q: ``(N, 4)`` ego rotation (body -> global) at that frame, ``(w, x, y, z)``.
+        cs_t: ``(N, 3)`` sensor calibration translation (LiDAR -> body) of that frame, metres.
+        cs_q: ``(N, 4)`` sensor calibration rotation (LiDAR -> body), ``(w, x, y, z)``.
 
     Returns:
         ``(N, 7)`` float64 ``(x, y, z, l, w, h, yaw)`` in the LiDAR frame, yaw in ``[-pi, pi)``.

@@ -65,12 +65,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "selection (the rule, the parts, every candidate's score)",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument(
+        "--logger",
+        default=None,
+        metavar="OUTPUTS",
+        help="with --out: the ranking as scalars in DIR/logs (one step per rank, 0 = selected), "
+        "a comma list of csv, json, tensorboard (default with --out: csv,json)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from training.evaluate import save_report
+    from training.scalars import DEFAULT_FORMATS, require_formats
     from training.selection import (
         SelectionConfig,
         ValPart,
@@ -92,12 +100,14 @@ def run(args: argparse.Namespace) -> int:
             dataset=args.dataset,
         )
         out = Path(args.out) if args.out else None
+        if args.logger is not None and out is None:
+            raise ValueError("--logger writes into --out DIR/logs: give --out")
+        formats = require_formats(args.logger or DEFAULT_FORMATS)  # before any scoring
         rows = score_candidates(
             args.candidates,
             config,
             cache_dir=out / "parts" if out else None,
             progress=not args.no_progress,
-            log=print,
         )
         uncertainty = ranking_uncertainty(rows)
     except ValueError as exc:
@@ -122,9 +132,30 @@ def run(args: argparse.Namespace) -> int:
             "ranking": [row | {"uncertainty": u} for row, u in zip(rows, uncertainty, strict=True)],
         }
         path = save_report(summary, out / "selection.json")
-        print(f"wrote {path}")
+        log_ranking(rows, uncertainty, out / "logs", formats)
+        print(f"wrote {path} and {out / 'logs'}")
     if args.save:
         from training.provenance import save_selected
 
         print(f"wrote {save_selected(rows, config, args.save)}")
     return 0
+
+
+def log_ranking(
+    rows: list[dict], uncertainty: list[dict], folder, formats: tuple[str, ...]
+) -> None:
+    """The ranking as ``select/...`` scalars (stable-baselines3's logger, :mod:`training.scalars`):
+    one step per rank (0 = selected) with the candidate, its pooled and per-part Success /
+    Precision and its share of first places over the tracklet resamples."""
+    from training.scalars import log_record, open_scalar_logger
+
+    logger = open_scalar_logger(folder, formats)
+    for rank, (row, u) in enumerate(zip(rows, uncertainty, strict=True)):
+        record = {"kind": "select", "step": rank, "candidate": row["candidate"]}
+        record |= {k: row[k] for k in ("success", "precision", "frames")}
+        record["p_first"] = u["p_first"]
+        for part, scores in row["parts"].items():
+            slug = part.replace(":", "_")
+            record |= {f"{k}_w{slug}": scores[k] for k in ("success", "precision")}
+        log_record(logger, record)
+    logger.close()

@@ -160,6 +160,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument(
+        "--logger",
+        metavar="OUTPUTS",
+        help="scalar outputs in OUT/logs: a comma list of csv, json, tensorboard (the tensorboard "
+        "extra); view with tensorboard --logdir runs/",
+    )
+    parser.add_argument(
         "--export",
         metavar="FILE.safetensors",
         help="write the best (else last) weights with trackers.save",
@@ -229,6 +235,9 @@ def run(args: argparse.Namespace) -> int:
         cfg = build_config(args)
     except ConfigError as exc:
         raise SystemExit(f"pointtrack train: {exc}") from None
+    from training.scalars import require_formats
+
+    require_formats(cfg.logger)  # a missing tensorboard is one line before any data is built
     from training.pretrain import TrainingError, train
 
     try:
