@@ -9,10 +9,11 @@ only here at module level: ``trackers`` imports it on every start).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from typing import Any
 
 __all__ = [
@@ -33,6 +34,7 @@ __all__ = [
     "SEARCH_SCALE",
     "SEARCH_SIZE",
     "SOURCES",
+    "TEMPLATE_ENLARGEMENT",
     "TEMPLATE_MODES",
     "TEMPLATE_SCALE",
     "TEMPLATE_SIZE",
@@ -57,6 +59,8 @@ SEARCH_OFFSET_M = 2.0
 """The default search crop: the reference box scaled 1.25 plus 2 m on every axis."""
 SEARCH_ENLARGEMENT = (SEARCH_SCALE, SEARCH_OFFSET_M)
 """The default ``(scale, offset_m)`` of the search crop (``EnvOptions.search_enlargement``)."""
+TEMPLATE_ENLARGEMENT = (TEMPLATE_SCALE, 0.0)
+"""``(scale, offset_m)`` of a template crop (and of ``previous_search``'s box mask)."""
 
 OBSERVATION_KEYS = ("template", "search", "size", "motion")
 """The default observation (always present)."""
@@ -182,10 +186,37 @@ class EnvOptions:
     """The user options of :class:`envs.tracking_env.TrackingEnv` (everything but the data:
     ``dataset``, ``setting``, ``categories``, ``split``), validated and normalised on
     construction: a bad value raises ``ValueError`` (``TypeError`` for a wrong type) naming the
-    field and the value. See the env's docstring for what each one does.
+    field and the value.
 
-    ``reward`` is checked for its type only here; :func:`envs.rewards.make_reward` resolves the
-    name (and names the registered ones) when the env is built.
+    - ``sampling``: ``"sequential"`` (visit the tracklets in order) or ``"random"``.
+    - ``template_mode``: one of :data:`TEMPLATE_MODES` (see :mod:`envs.template`).
+    - ``reference``: the box the search region is cropped around: ``"prediction"`` (default),
+      ``"previous_gt"``, ``"current_gt"``.
+    - ``reward``, ``reward_kwargs``: a reward name of :mod:`envs.rewards` built with the
+      kwargs, or a picklable callable ``(pred, gt, prev_pred, step, info) -> float``. Checked
+      for its type here; :func:`envs.rewards.make_reward` resolves the name when the env is built.
+    - ``max_action``: the action bound ``(4,)`` (m, m, m, rad); stored as a tuple of floats.
+    - ``render_mode``: ``None`` or ``"rgb_array"``.
+    - ``scan_transform``: see :data:`envs.scan_cache.ScanTransform` (the weather hook). If it
+      has an ``info`` attribute, that value is reported as ``info["weather"]``.
+    - ``corridor_m``: margin (m) of the per-tracklet corridor of the crop cache
+      (:mod:`envs.scan_cache`): each frame keeps, indexed by ``cell_m`` xy cells, the scan
+      points within reach of any of the tracklet's boxes; crops elsewhere read a whole-scan
+      cell index built on demand. Neither changes an observation. ``None``: crop whole scans
+      every step (the no-cache baseline). ``cache_mb``: memory budget of the cache (LRU over
+      tracklets).
+    - ``episode_seed``: ``None`` (default: episodes draw from the env's ``np_random`` one after
+      the other) or an int: every episode draws its resampling from its own generator seeded
+      by ``(episode_seed, tracklet id)``, so what it observes for given actions depends only on
+      its tracklet (and start frame) — not on the episodes before it, the tracklet order or
+      filter, or the vector sub-env that runs it. Settable on the env between episodes.
+    - ``start_frame``, ``max_steps``: the defaults of the reset options (``0``, ``None``: whole
+      tracklets); ``start_frame`` may be ``"random"``.
+    - ``observation_keys``: :data:`OBSERVATION_KEYS` plus any of
+      :data:`OPTIONAL_OBSERVATION_KEYS`.
+    - ``search_enlargement``: ``(scale, offset_m)`` of the search crop (default ``(1.25, 2.0)``;
+      GPT's paper crops ``(1.0, 4.0)``); trackers must be evaluated with the region they were
+      trained with. Stored as a tuple of floats.
     """
 
     sampling: str = "sequential"
@@ -194,19 +225,16 @@ class EnvOptions:
     reward: str | Callable[..., float] = "iou_3d"
     reward_kwargs: Mapping[str, Any] | None = None
     max_action: Sequence[float] = DEFAULT_MAX_ACTION
-    """``(4,)`` m, m, m, rad; stored as a tuple of floats."""
     render_mode: str | None = None
     scan_transform: Callable[..., Any] | None = None
     corridor_m: float | None = 2.0
-    """m; ``None``: no crop cache (whole scans every step)."""
     cell_m: float = 1.0
     cache_mb: float = 512.0
     episode_seed: int | None = None
     start_frame: int | str = 0
     max_steps: int | None = None
     observation_keys: Sequence[str] = OBSERVATION_KEYS
-    search_enlargement: Sequence[float] = field(default=SEARCH_ENLARGEMENT)
-    """``(scale, offset_m)``; stored as a tuple of floats."""
+    search_enlargement: Sequence[float] = SEARCH_ENLARGEMENT
 
     def __post_init__(self) -> None:
         self.check()
@@ -271,6 +299,10 @@ class EnvOptions:
     def names(cls) -> tuple[str, ...]:
         """The option names, in declaration order."""
         return tuple(f.name for f in fields(cls))
+
+    def replace(self, **changes: Any) -> EnvOptions:
+        """A copy with ``changes`` (validated; an unknown name is a ``TypeError`` naming it)."""
+        return dataclasses.replace(self, **changes)
 
     def to_kwargs(self) -> dict[str, Any]:
         """The options as ``TrackingEnv`` keywords (a shallow dict of the fields)."""
