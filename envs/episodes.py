@@ -15,7 +15,7 @@ import numpy as np
 from envs.data.tracklet import Tracklet
 from envs.spec import (
     RESET_OPTIONS,
-    SAMPLING_MODES,
+    EnvOptions,
     check_max_steps,
     check_seed,
     check_start_frame,
@@ -29,27 +29,18 @@ class EpisodeSchedule:
 
     Args:
         tracklets: the env's tracklets (shared, not copied).
-        sampling: ``"sequential"`` (visit :attr:`tracklet_order`, wrapping around) or
-            ``"random"`` (draw one uniformly).
-        start_frame, max_steps, episode_seed: the defaults of the reset options of the same
-            names (validated already, see :class:`envs.spec.EnvOptions`).
+        options: the env's options: ``sampling`` (``"sequential"``: visit
+            :attr:`tracklet_order`, wrapping around; ``"random"``: draw one uniformly), and
+            ``start_frame``, ``max_steps``, ``episode_seed``: the defaults of the reset options
+            of the same names.
     """
 
-    def __init__(
-        self,
-        tracklets: list[Tracklet],
-        sampling: str,
-        start_frame: int | str,
-        max_steps: int | None,
-        episode_seed: int | None,
-    ) -> None:
-        if sampling not in SAMPLING_MODES:
-            raise ValueError(f"unknown sampling {sampling!r}; valid: {list(SAMPLING_MODES)}")
+    def __init__(self, tracklets: list[Tracklet], options: EnvOptions) -> None:
         self.tracklets = tracklets
-        self.sampling = sampling
-        self.default_start = start_frame
-        self.default_max_steps = max_steps
-        self.episode_seed = episode_seed
+        self.sampling = options.sampling
+        self.default_start = options.start_frame
+        self.default_max_steps = options.max_steps
+        self.episode_seed = options.episode_seed
         self._order: list[int] | None = None
         self.cursor = 0
 
@@ -84,8 +75,22 @@ class EpisodeSchedule:
         self.cursor = 0
 
     def options(self, options: dict[str, Any] | None) -> dict[str, Any]:
-        """The reset options validated, with the defaults for missing ones (``None`` values
-        mean "not given"); ``category`` as a tuple of names."""
+        """The reset options validated, with the defaults for missing ones; ``category`` as a
+        tuple of names. Any other key raises ``ValueError`` naming the valid ones; ``None``
+        values mean "not given".
+
+        - ``tracklet``: an index into the tracklets or a tracklet id;
+        - ``category``: a category name or a list of them: the next tracklet (sequential: in
+          ``tracklet_order`` from the cursor on; random: uniformly among them) of those;
+        - ``start_frame``: an index in the tracklet (``0 .. T-2``) or ``"random"`` (uniform
+          over them, drawn with the env's ``np_random``);
+        - ``max_steps``: the clip length, at least 1;
+        - ``episode_seed``: this episode's resampling seed (overrides the env's).
+
+        The env's ``start_frame``, ``max_steps`` and ``episode_seed`` are the defaults;
+        ``categories`` and ``sampling`` / ``tracklet_order`` play that part for ``category``
+        and ``tracklet``.
+        """
         options = dict(options or {})
         unknown = sorted(set(options) - set(RESET_OPTIONS))
         if unknown:

@@ -23,7 +23,18 @@ from envs.spec import SOURCES
 from envs.synthetic import ensure_world
 from envs.synthetic.nuscenes_layout import DEFAULT_VERSION, ensure_nuscenes_world
 
-__all__ = ["EnvData", "is_pathlike", "open_dataset"]
+__all__ = ["SOURCE_KEYWORDS", "EnvData", "is_pathlike", "open_dataset"]
+
+SOURCE_KEYWORDS = (
+    "root",
+    "preset",
+    "sensor",
+    "seed",
+    "version",
+    "cache_dir",
+    "allow_missing_scenes",
+)
+"""The keywords of :func:`open_dataset` that describe a named source."""
 
 
 def is_pathlike(x: Any) -> bool:

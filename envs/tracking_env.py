@@ -1,24 +1,17 @@
 """The Gymnasium environment for 3D single-object tracking in LiDAR point clouds.
 
-One episode is one tracklet (or a clip of one): the target's box is given in the first frame,
-and at every later frame the agent moves the box. See :class:`TrackingEnv` for the full contract
-and its version history. :func:`make_tracking_env` is the one factory (a named data source or a
-dataset, plus :class:`envs.spec.EnvOptions`); the registered ids (``pointtrack/Synthetic-v1``,
-``pointtrack/KITTI-v1``) are built by :func:`make_synthetic_env` and :func:`make_kitti_env`.
-
-Around the env: :mod:`envs.spec` (the contract: observation keys and shapes, modes, options),
-:mod:`envs.episodes` (which tracklet and frames an episode runs on), :mod:`envs.template` (the
-template modes), :mod:`envs.scan_cache` (where crops come from: the per-tracklet cell indices),
-:mod:`envs.rewards` (the named rewards and their registry), :mod:`envs.observation` (cropping,
-resampling, the observation space), :mod:`envs.sources` (opening the named data sources),
-:mod:`envs.data.toy` (:func:`make_toy_dataset`, re-exported here).
+One episode is one tracklet (or a clip of one). See :class:`TrackingEnv` for the contract and
+its version history; :func:`make_tracking_env` is the one factory (the registered ids' entry
+points :func:`make_synthetic_env` and :func:`make_kitti_env` call it). Around the env:
+:mod:`envs.spec` (the contract and the options), :mod:`envs.episodes` (scheduling),
+:mod:`envs.template` (template modes), :mod:`envs.scan_cache` (crops), :mod:`envs.rewards`,
+:mod:`envs.observation` (cropping, resampling, the space), :mod:`envs.sources` (data).
 """
 
 from __future__ import annotations
 
 import copy
 import math
-import os
 from collections.abc import Sequence
 from types import MappingProxyType
 from typing import Any
@@ -27,7 +20,7 @@ import gymnasium as gym
 import numpy as np
 
 from envs.data import Setting, get_setting
-from envs.data.toy import ToyDataset, make_toy_dataset
+from envs.data.toy import make_toy_dataset
 from envs.data.tracklet import Tracklet
 from envs.episodes import EpisodeSchedule
 from envs.geometry import apply_offset_pair, iou_pair, offset_between_pair
@@ -38,7 +31,7 @@ from envs.observation import (
     previous_search_points,
     resample_into,
 )
-from envs.render import render_birds_eye
+from envs.render import render_birds_eye, render_search_region
 from envs.rewards import (
     ROUND_OFF,
     RewardFn,
@@ -49,16 +42,14 @@ from envs.rewards import (
     snap_iou,
 )
 from envs.scan_cache import CropCache, ScanTransform, TrackletScans, crop_canonical
-from envs.sources import EnvData, open_dataset
+from envs.sources import SOURCE_KEYWORDS, EnvData, open_dataset
 from envs.spec import (
-    DEFAULT_MAX_ACTION,
     DEFAULT_SPLITS,
     NUSCENES_MAX_ACTION,
     OBSERVATION_KEYS,
     OPTIONAL_OBSERVATION_KEYS,
     REFERENCE_MODES,
     RESET_OPTIONS,
-    SAMPLING_MODES,
     TEMPLATE_ENLARGEMENT,
     TEMPLATE_MODES,
     EnvOptions,
@@ -66,18 +57,13 @@ from envs.spec import (
 from envs.template import TemplateCrops
 
 __all__ = [
-    "DEFAULT_MAX_ACTION",
     "OBSERVATION_KEYS",
     "OPTIONAL_OBSERVATION_KEYS",
     "REFERENCE_MODES",
     "RESET_OPTIONS",
     "REWARDS",
-    "ROUND_OFF",
-    "SAMPLING_MODES",
     "TEMPLATE_MODES",
     "EnvOptions",
-    "ScanTransform",
-    "ToyDataset",
     "TrackingEnv",
     "crop_canonical",
     "make_kitti_env",
@@ -120,36 +106,27 @@ class TrackingEnv(gym.Env):
       prediction two frames back to the last one, in the former's frame (zeros at the first
       step), so motion-aware trackers stay stateless.
 
-    Opt-in (``observation_keys=(*OBSERVATION_KEYS, "previous_search")``), the input of
-    motion-centric trackers (M2-Track, Zheng et al., CVPR 2022):
-
-    - ``previous_search (1024, 5)``: the previous frame's points cropped and transformed like the
-      search region (around the same reference box, same enlargement, same frame), resampled
-      likewise, with columns ``x, y, z, time, mask`` (``envs.observation.PREVIOUS_SEARCH_
-      CHANNELS``): ``time`` is ``PREVIOUS_TIME`` (0; M2-Track gives the current frame's points
-      ``CURRENT_TIME`` = 0.1), ``mask`` says whether the point lies in the reference box scaled
-      1.25: 1 / 0 when that box is the previous frame's ground truth (the given box at the first
-      step, or ``reference="previous_gt"``), else M2-Track's softened 0.8 / 0.2; zeros when the
-      crop is empty (``info["empty_previous_search"]``).
+    Opt-in (``observation_keys=(*OBSERVATION_KEYS, "previous_search")``), M2-Track's input
+    (Zheng et al., CVPR 2022): ``previous_search (1024, 5)``, the previous frame cropped and
+    resampled like the search region around the same reference box, columns ``x, y, z, time,
+    mask`` (:func:`envs.observation.previous_search_points`); zeros when the crop is empty
+    (``info["empty_previous_search"]``).
 
     Template modes (``template_mode``, see :class:`envs.template.TemplateCrops`):
-    ``"first_and_previous"`` (default: 256 points of the given box's crop and 256 of the previous
-    prediction's), ``"first"``, ``"previous"``, ``"all"`` (P2B's all previous results),
-    ``"first_and_previous_merged"`` (Open3DSOT's ``firstandprevious``). Point sets are resampled
-    with ``self.np_random`` (duplicates when too few, a random subset when too many), or, when an
-    episode seed is set, with a generator seeded by ``(episode_seed, tracklet id)`` at every
-    reset; an empty set gives zeros and ``info["empty_template"]`` / ``info["empty_search"]``
-    say so. Cropped point sets are the points ``envs.observation.crop_box_frame`` selects, rows
-    in a canonical order (see :func:`envs.scan_cache.crop_canonical`).
+    ``"first_and_previous"`` (default), ``"first"``, ``"previous"``, ``"all"``,
+    ``"first_and_previous_merged"``. Point sets are
+    resampled (:func:`envs.observation.resample_into`) with ``self.np_random``, or with a
+    generator seeded by ``(episode_seed, tracklet id)`` at every reset when an episode seed is
+    set; an empty set gives zeros and ``info["empty_template"]`` / ``info["empty_search"]`` say
+    so. Crops are the points ``envs.observation.crop_box_frame`` selects, rows in a canonical
+    order (:func:`envs.scan_cache.crop_canonical`).
 
     ## Rewards
-    ``reward``: a name of :mod:`envs.rewards` — ``"iou_3d"`` (default: the oriented 3D IoU of the
-    new box with the ground truth), ``"iou_bev"``, ``"neg_center_error"`` (minus the centre
-    distance, m), ``"iou_delta"`` (IoU gain over keeping the previous box), ``"success"`` (1 if
-    the IoU reaches ``reward_kwargs["threshold"]``, default 0.5), or one registered with
-    :func:`envs.rewards.register_reward` — built with ``reward_kwargs``; or a picklable callable
-    ``reward(pred (7,), gt (7,), prev_pred (7,), step, info) -> float`` (``info``: this step's
-    info, read-only; a non-finite value raises ``ValueError``).
+    ``reward``: a name of :mod:`envs.rewards` (``"iou_3d"``, the default: the oriented 3D IoU of
+    the new box with the ground truth; ``"iou_bev"``, ``"neg_center_error"``, ``"iou_delta"``,
+    ``"success"``, or one registered with :func:`envs.rewards.register_reward`) built with
+    ``reward_kwargs``; or a picklable callable ``reward(pred (7,), gt (7,), prev_pred (7,), step,
+    info) -> float`` (``info``: this step's, read-only; a non-finite value raises ``ValueError``).
 
     ## Starting State
     ``reset`` starts the next tracklet: ``sampling="sequential"`` visits the tracklets in order
@@ -158,22 +135,10 @@ class TrackingEnv(gym.Env):
     frame is ``start_frame`` (default 0; its ground-truth box is the given box) and the first
     observation is for the frame after it. Reset ``info``: ``tracklet``, ``category``,
     ``observed``, ``init_box`` (the given box), ``start_frame``, ``empty_template``,
-    ``empty_search`` (plus ``weather``, see the step info).
-
-    ``reset(options=...)`` (any other key raises ``ValueError`` naming the valid ones; ``None``
-    values mean "not given"):
-
-    - ``tracklet``: an index into ``self.tracklets`` or a tracklet id;
-    - ``category``: a category name or a list of them: the next tracklet (sequential: in
-      ``tracklet_order`` from the cursor on; random: uniformly among them) of those categories;
-    - ``start_frame``: an index in the tracklet (``0 .. T-2``) or ``"random"`` (uniform over
-      them, drawn with ``self.np_random``);
-    - ``max_steps``: the clip length, at least 1;
-    - ``episode_seed``: this episode's resampling seed (overrides the env's ``episode_seed``).
-
-    The constructor's ``start_frame``, ``max_steps`` and ``episode_seed`` are the defaults of
-    the options of the same names; ``categories`` and ``sampling`` / ``tracklet_order`` play
-    that part for ``category`` and ``tracklet``.
+    ``empty_search`` (plus ``weather``, see the step info). ``reset(options=...)`` takes
+    ``tracklet`` (index or id), ``category``, ``start_frame`` (or ``"random"``), ``max_steps``
+    (a clip) and ``episode_seed`` (see :meth:`envs.episodes.EpisodeSchedule.options`); the
+    constructor's options of those names are their defaults.
 
     ## Episode End
     ``terminated`` at the tracklet's last frame (the final observation repeats the last one).
@@ -188,23 +153,15 @@ class TrackingEnv(gym.Env):
     ``empty_search``; plus ``weather`` when the scan transform has an ``info`` attribute.
 
     ## Arguments
-    - ``dataset``: anything with ``.tracklets`` (``envs.data.KittiTracking``,
-      :func:`make_toy_dataset`), or a KITTI-layout root folder (then ``split`` is used).
-    - ``setting``: a class-agnostic setting name (``"kitti-1"``...) or ``envs.data.Setting``;
-      ``observed`` flags follow it; by default its observed and unseen categories are used. An
-      env of split ``train`` whose categories include the setting's unseen ones warns (at
-      construction) naming them: training on them breaks the class-agnostic protocol.
-    - ``categories``: restrict to these categories (within the setting if one is given).
-    - ``split``: the split to read when ``dataset`` is a folder; otherwise only checked against
-      ``dataset.split`` and quoted in errors.
-    - ``options``: an :class:`envs.spec.EnvOptions`, and keywords: its fields (they override
-      ``options``'s) — ``sampling``, ``template_mode``, ``reference``, ``reward``,
+    - ``dataset``, ``setting``, ``categories``, ``split``: what the env serves (see
+      :meth:`envs.sources.EnvData.select`): a dataset (anything with ``.tracklets``) or a
+      KITTI-layout folder, the class-agnostic setting (``observed`` flags follow it), the
+      categories (default: the setting's). Tracklets shorter than two frames are skipped.
+    - ``options`` (an :class:`envs.spec.EnvOptions`) and keywords, its fields (which override
+      ``options``'s): ``sampling``, ``template_mode``, ``reference``, ``reward``,
       ``reward_kwargs``, ``max_action``, ``render_mode``, ``scan_transform``, ``corridor_m``,
       ``cell_m``, ``cache_mb``, ``episode_seed``, ``start_frame``, ``max_steps``,
-      ``observation_keys``, ``search_enlargement``; each is documented there and validated
-      there (an unknown keyword is a ``TypeError`` naming it).
-
-    Tracklets shorter than two frames are skipped.
+      ``observation_keys``, ``search_enlargement``, documented and validated there.
 
     ## Version History
     An id's version names what an agent observes and earns for given seeds and actions; the
@@ -263,13 +220,7 @@ class TrackingEnv(gym.Env):
         self.corridor_m = options.corridor_m
         self.cell_m = options.cell_m
         self.cache_mb = options.cache_mb
-        self._schedule = EpisodeSchedule(
-            self.tracklets,
-            options.sampling,
-            options.start_frame,
-            options.max_steps,
-            options.episode_seed,
-        )
+        self._schedule = EpisodeSchedule(self.tracklets, options)
 
         self.action_space = gym.spaces.Box(
             -a_max.astype(np.float32), a_max.astype(np.float32), (4,), np.float32
@@ -325,9 +276,8 @@ class TrackingEnv(gym.Env):
 
     @property
     def cache_stats(self) -> dict[str, int]:
-        """Crops served by the corridor indices, the whole-scan cell indices and direct
-        whole-scan crops (``corridor``, ``cell_index``, ``full_scan``) since the env was made
-        (or cloned / unpickled)."""
+        """Crops served by the corridor indices, the whole-scan cell indices and whole scans
+        (``corridor``, ``cell_index``, ``full_scan``) since the env was made, cloned or loaded."""
         return self._crop_cache.stats
 
     @property
@@ -471,21 +421,14 @@ class TrackingEnv(gym.Env):
             return None
         if self._tracklet is None:
             return render_birds_eye(np.zeros((0, 3), np.float32), [], frame_box=None, extent_m=10.0)
-        if self._render_state is not None:
-            points, ref, gt, pred = self._render_state
-        else:  # just after reset: the first search region, no prediction yet
-            points, ref, gt, pred = (
-                self._search_crop,
-                self._ref,
-                self._tracklet.boxes[self._t],
-                None,
-            )
-        boxes = [(ref, (70, 110, 255)), (gt, (40, 200, 40))]
-        if pred is not None:
-            boxes.append((pred, (230, 40, 40)))
-        scale, offset_m = self.search_enlargement
-        half = 0.5 * scale * float(max(ref[3], ref[4])) + offset_m
-        return render_birds_eye(points, boxes, frame_box=ref, extent_m=half)
+        # just after reset: the first search region, no prediction yet
+        state = self._render_state or (
+            self._search_crop,
+            self._ref,
+            self._tracklet.boxes[self._t],
+            None,
+        )
+        return render_search_region(*state, self.search_enlargement)
 
     def close(self) -> None:
         self._crop_cache.clear(self.scan_transform)
@@ -516,15 +459,10 @@ class TrackingEnv(gym.Env):
     ) -> float:
         """The reward of step ``step`` (0 first) that predicted ``pred`` for ``gt`` after
         ``prev_pred``: :attr:`reward_fn` on copies, its info read-only."""
-        fn = self.reward_fn
-        value = fn(
-            pred.copy(),
-            np.array(gt, dtype=np.float64),
-            prev_pred.copy(),
-            step,
-            MappingProxyType(info),
+        fn, gt = self.reward_fn, np.array(gt, dtype=np.float64)
+        return finite_reward(
+            fn(pred.copy(), gt, prev_pred.copy(), step, MappingProxyType(info)), fn
         )
-        return finite_reward(value, fn)
 
     def _is_terminated(self) -> bool:
         """Whether the current step ends the tracklet (its last frame)."""
@@ -549,7 +487,7 @@ class TrackingEnv(gym.Env):
             "observed": self._observed,
             "tracklet": tr.tracklet_id,
             "frame": self._t,
-            "target_points": self._target_points(self._t),
+            "target_points": self._crop_cache.target_points(self._entry, self._index, self._t),
             "action_clipped": action_clipped,
         }
 
@@ -603,6 +541,12 @@ class TrackingEnv(gym.Env):
         self._last_frame = len(tr) - 1
         max_steps = opts["max_steps"]
         self._clip_end = self._last_frame if max_steps is None else start + max_steps
+        first = self._entry.template_crops.get(start)
+        if first is None:  # the given box's crop: the same in every episode from this frame
+            (first,) = self._crops(box0, (start,), (TEMPLATE_ENLARGEMENT,))
+            self._entry.template_crops[start] = first
+        self._first_crop = first
+        self._templates = TemplateCrops(self.template_mode, first)
 
     def _reference_box(self, t: int) -> np.ndarray:
         if self.reference == "prediction":
@@ -614,16 +558,7 @@ class TrackingEnv(gym.Env):
     def _observation(self) -> tuple[dict[str, np.ndarray], dict[str, bool]]:
         """The observation for frame ``self._t`` (uses the predictions up to ``t - 1``) and its
         ``empty_*`` flags: every crop and the resampling."""
-        t, start = self._t, self._start_frame
-        entry = self._entry
-        first = entry.template_crops.get(start)
-        if first is None:  # the given box's crop: the same in every episode from this frame
-            (first,) = self._crops(self._preds[0], (start,), (TEMPLATE_ENLARGEMENT,))
-            entry.template_crops[start] = first
-        if t == start + 1:
-            self._first_crop = first
-            self._templates = TemplateCrops(self.template_mode, first)
-        templates = self._templates
+        t, start, templates = self._t, self._start_frame, self._templates
         ref = self._reference_box(t)
         # the crops around the reference box, taken in one pass: the search region, the opt-in
         # previous search region, and the previous template when its box is the reference
@@ -695,9 +630,6 @@ class TrackingEnv(gym.Env):
         """:meth:`envs.scan_cache.TrackletScans.crops` of the episode's tracklet."""
         return self._crop_cache.crops(self._entry, self._index, box, frames, enlargements)
 
-    def _target_points(self, t: int) -> int:
-        return self._crop_cache.target_points(self._entry, self._index, t)
-
     def _add_weather(self, info: dict[str, Any]) -> None:
         weather = getattr(self.scan_transform, "info", None)
         if weather is not None:
@@ -720,98 +652,49 @@ def make_tracking_env(
     setting: str | Setting | None = None,
     categories: str | Sequence[str] | None = None,
     options: EnvOptions | None = None,
-    root: str | os.PathLike | None = None,
-    preset: str | None = None,
-    sensor: str | None = None,
-    seed: int = 0,
-    version: str | None = None,
-    cache_dir: str | os.PathLike | None = None,
-    allow_missing_scenes: bool = False,
-    **option_kwargs: Any,
+    **kwargs: Any,
 ) -> TrackingEnv:
     """The one factory of :class:`TrackingEnv`: a data source and the options.
 
     Args:
-        source: a named source of :data:`envs.spec.SOURCES` — ``"synthetic"`` (default),
-            ``"kitti"``, ``"nuscenes"`` — opened by :func:`envs.sources.open_dataset` with
-            ``root``, ``preset``, ``sensor``, ``seed``, ``version``, ``cache_dir`` and
-            ``allow_missing_scenes`` (see there); or a dataset (anything with ``.tracklets``,
-            shared, not copied; the source keywords must then be left out).
-        split: the split to read (default: :data:`envs.spec.DEFAULT_SPLITS` of a named
-            source; a dataset's own).
+        source: a named source of :data:`envs.spec.SOURCES` (``"synthetic"``, ``"kitti"``,
+            ``"nuscenes"``), read at ``split`` (default :data:`envs.spec.DEFAULT_SPLITS`), or a
+            dataset (anything with ``.tracklets``; shared, not copied).
         setting, categories: the class-agnostic setting and the categories to serve (default:
             the setting's); a named source reads only these categories.
-        options, option_kwargs: the env's :class:`envs.spec.EnvOptions` (keywords override
-            ``options``'s fields). Without ``options``, a nuScenes source's ``max_action``
-            defaults to :data:`envs.spec.NUSCENES_MAX_ACTION` (key frames are 0.5 s apart).
+        options: the env's :class:`envs.spec.EnvOptions`.
+        kwargs: a named source's keywords (:data:`envs.sources.SOURCE_KEYWORDS`: ``root``,
+            ``preset``, ``sensor``, ``seed``, ``version``, ``cache_dir``,
+            ``allow_missing_scenes``; see :func:`envs.sources.open_dataset`), and option fields
+            (they override ``options``'s). Without ``options``, a nuScenes source's
+            ``max_action`` defaults to :data:`envs.spec.NUSCENES_MAX_ACTION`.
     """
-    source_kwargs = {
-        "root": root,
-        "preset": preset,
-        "sensor": sensor,
-        "seed": seed,
-        "version": version,
-        "cache_dir": cache_dir,
-        "allow_missing_scenes": allow_missing_scenes,
-    }
-    if not isinstance(source, str):
-        unset = {"seed": 0, "allow_missing_scenes": False}
-        named = [k for k, v in source_kwargs.items() if v != unset.get(k)]
-        if named:
-            raise ValueError(f"make_tracking_env: {named} apply to a named source, not a dataset")
-        dataset = source
-    else:
+    source_kwargs = {k: kwargs.pop(k) for k in SOURCE_KEYWORDS if k in kwargs}
+    if isinstance(source, str):
         split = DEFAULT_SPLITS.get(source) if split is None else split
         load = (categories,) if isinstance(categories, str) else categories
         if load is None and setting is not None:
             load = get_setting(setting).categories
         dataset = open_dataset(source, split, load, **source_kwargs)
         if source == "nuscenes" and options is None:
-            option_kwargs.setdefault("max_action", NUSCENES_MAX_ACTION)
+            kwargs.setdefault("max_action", NUSCENES_MAX_ACTION)
+    elif source_kwargs:
+        raise ValueError(f"{sorted(source_kwargs)} apply to a named source, not to a dataset")
+    else:
+        dataset = source
     return TrackingEnv(
-        dataset,
-        setting=setting,
-        categories=categories,
-        split=split,
-        options=options,
-        **option_kwargs,
+        dataset, setting=setting, categories=categories, split=split, options=options, **kwargs
     )
 
 
-def make_synthetic_env(
-    preset: str = "small",
-    sensor: str = "hdl64",
-    seed: int = 0,
-    split: str = "train",
-    setting: str | None = None,
-    categories: str | Sequence[str] | None = None,
-    cache_dir: str | None = None,
-    **env_kwargs: Any,
-) -> TrackingEnv:
-    """Entry point of ``pointtrack/Synthetic-v1``: the synthetic world ``(preset, sensor, seed)``,
-    generated into the cache on first use, read as KITTI; other kwargs go to :class:`TrackingEnv`.
-    """
-    return make_tracking_env(
-        "synthetic",
-        preset=preset,
-        sensor=sensor,
-        seed=seed,
-        split=split,
-        setting=setting,
-        categories=categories,
-        cache_dir=cache_dir,
-        **env_kwargs,
-    )
+def make_synthetic_env(**kwargs: Any) -> TrackingEnv:
+    """Entry point of ``pointtrack/Synthetic-v1``: :func:`make_tracking_env` of the synthetic
+    world ``(preset, sensor, seed)`` (defaults ``"small"``, ``"hdl64"``, 0; generated into the
+    cache on first use, read as KITTI), split ``"train"`` by default."""
+    return make_tracking_env("synthetic", **kwargs)
 
 
-def make_kitti_env(
-    root: str | None = None,
-    split: str = "test",
-    setting: str | None = None,
-    categories: str | Sequence[str] | None = None,
-    **env_kwargs: Any,
-) -> TrackingEnv:
-    """Entry point of ``pointtrack/KITTI-v1``: the KITTI tracking layout under ``root``."""
-    return make_tracking_env(
-        "kitti", root=root, split=split, setting=setting, categories=categories, **env_kwargs
-    )
+def make_kitti_env(**kwargs: Any) -> TrackingEnv:
+    """Entry point of ``pointtrack/KITTI-v1``: :func:`make_tracking_env` of the KITTI tracking
+    layout under ``root`` (required), split ``"test"`` by default."""
+    return make_tracking_env("kitti", **kwargs)
