@@ -254,9 +254,7 @@ class EnvOptions:
             if self.reward_kwargs and not isinstance(self.reward, str):
                 raise ValueError("reward_kwargs apply to a reward name, not to a callable")
         if self.scan_transform is not None and not callable(self.scan_transform):
-            raise TypeError(
-                f"scan_transform must be callable; got {type(self.scan_transform).__name__}"
-            )
+            raise TypeError(f"scan_transform must be callable; got {self.scan_transform!r}")
         a_max = _finite_floats(self.max_action)
         if a_max is None or len(a_max) != 4 or min(a_max) <= 0:
             raise ValueError(
