@@ -23,8 +23,9 @@ from envs.data.kitti import Calibration, camera_to_lidar_boxes, read_calibration
 from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
 from envs.synthetic.objects import make_object
 from envs.synthetic.raycast import Parts
-from envs.synthetic.scene import Agent, Ground, Scene, StaticObject, make_pole, make_tree
+from envs.synthetic.scene_types import Agent, Ground, Scene
 from envs.synthetic.sensor import SensorModel
+from envs.synthetic.street import StaticObject, make_pole, make_tree
 
 __all__ = ["SHAPE_OF", "build_replay_scene", "replay_scene_ids"]
 

@@ -13,37 +13,27 @@ import math
 
 import numpy as np
 
-from envs.synthetic.objects import (
-    segments_to_parts,
-)
+from envs.synthetic.objects import segments_to_parts
 from envs.synthetic.raycast import CYLINDER, CastResult, Parts, box_parts, cast
 from envs.synthetic.scene_types import (
-    DT,
     FOV_HALF_ANGLE,
     LABEL_RANGE,
-    Agent,
     FrameResult,
     Ground,
     Scene,
     SceneConfig,
 )
 from envs.synthetic.sensor import SensorModel
-from envs.synthetic.street import StaticObject, build_scene, make_pole, make_tree
+from envs.synthetic.street import build_scene
 
+# re-exported: what a caller needs to build and render a scene (SceneConfig, build_scene) and
+# the labelled view (FOV_HALF_ANGLE, LABEL_RANGE)
 __all__ = [
-    "DT",
     "FOV_HALF_ANGLE",
     "LABEL_RANGE",
-    "Agent",
-    "FrameResult",
-    "Ground",
-    "Scene",
     "SceneConfig",
-    "StaticObject",
     "agent_boxes_world",
     "build_scene",
-    "make_pole",
-    "make_tree",
     "render_frame",
     "sensor_pose",
     "world_to_sensor_boxes",

@@ -41,15 +41,10 @@ from envs.data.kitti import (
 from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
 from envs.synthetic.objects import CATEGORIES
 from envs.synthetic.replay import build_replay_scene, replay_scene_ids
-from envs.synthetic.scene import (
-    DT,
-    FrameResult,
-    Scene,
-    SceneConfig,
-    build_scene,
-    render_frame,
-)
+from envs.synthetic.scene import render_frame
+from envs.synthetic.scene_types import DT, FrameResult, Scene, SceneConfig
 from envs.synthetic.sensor import SensorModel, get_sensor
+from envs.synthetic.street import build_scene
 
 __all__ = [
     "GENERATOR_VERSION",
