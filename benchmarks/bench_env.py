@@ -94,7 +94,7 @@ def vector_rate(kwargs: dict, n: int, steps: int) -> float:
     import gymnasium as gym
 
     vec = gym.make_vec(
-        "envs:pointtrack/Synthetic-v0", num_envs=n, vectorization_mode="async", **kwargs
+        "envs:pointtrack/Synthetic-v1", num_envs=n, vectorization_mode="async", **kwargs
     )
     try:
         lengths = vec.get_attr("tracklet_lengths")[0]
@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"world: {root} ({time.perf_counter() - t0:.1f} s to ensure)")
     print(f"load average: {os.getloadavg()[0]:.2f} (2 cores shared; numbers are best-of-N)")
 
-    env = gym.make("pointtrack/Synthetic-v0", **kwargs)
+    env = gym.make("pointtrack/Synthetic-v1", **kwargs)
     u = env.unwrapped
     print(f"split {args.split}: {u.num_tracklets} tracklets, {sum(u.tracklet_lengths)} frames")
     steps, secs = zero_pass(env)
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(_cache_line(u))
 
-    uni_env = gym.make("pointtrack/Synthetic-v0", **kwargs)
+    uni_env = gym.make("pointtrack/Synthetic-v1", **kwargs)
     rng = np.random.default_rng(args.seed)
     rates = []
     for _ in range(max(2, args.uniform_passes)):
@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(_cache_line(uni_env.unwrapped))
 
-    full_env = gym.make("pointtrack/Synthetic-v0", corridor_m=None, **kwargs)
+    full_env = gym.make("pointtrack/Synthetic-v1", corridor_m=None, **kwargs)
     full, full_cpu = 0.0, 0.0
     for _ in range(max(1, args.repeats - 1)):
         steps, secs = zero_pass(full_env, args.full_steps)
@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         mem_preset = "default"
     rss0 = _rss_mb()
     mem_kwargs = dict(kwargs, preset=mem_preset)
-    menv = gym.make("pointtrack/Synthetic-v0", **mem_kwargs)
+    menv = gym.make("pointtrack/Synthetic-v1", **mem_kwargs)
     zero_pass(menv)
     mu = menv.unwrapped
     print(

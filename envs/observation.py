@@ -13,18 +13,50 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
+import gymnasium as gym
 import numpy as np
 
-TEMPLATE_SIZE = 512
-SEARCH_SIZE = 1024
-TEMPLATE_SCALE = 1.25
-SEARCH_SCALE = 1.25
-SEARCH_OFFSET_M = 2.0
+from envs.spec import (
+    OBS_SHAPES,
+    OPTIONAL_OBS_SHAPES,
+    PREVIOUS_SEARCH_CHANNELS,
+    SEARCH_OFFSET_M,
+    SEARCH_SCALE,
+    SEARCH_SIZE,
+    TEMPLATE_ENLARGEMENT,
+    TEMPLATE_SCALE,
+    TEMPLATE_SIZE,
+)
 
-PREVIOUS_SEARCH_CHANNELS = ("x", "y", "z", "time", "mask")
-"""Columns of the opt-in ``previous_search`` observation (M2-Track's input layout: Zheng et al.,
-"Beyond 3D Siamese Tracking: A Motion-Centric Paradigm for 3D Single Object Tracking in Point
-Clouds", CVPR 2022): the previous frame's points, their time, their previous-box mask."""
+__all__ = [
+    "CURRENT_MASK",
+    "CURRENT_TIME",
+    "MASK_GT",
+    "MASK_PREDICTED",
+    "MOTION_BOUND_M",
+    "POINT_BOUND_M",
+    "PREVIOUS_SEARCH_CHANNELS",
+    "PREVIOUS_TIME",
+    "SEARCH_OFFSET_M",
+    "SEARCH_SCALE",
+    "SEARCH_SIZE",
+    "SIZE_BOUND_M",
+    "TEMPLATE_SCALE",
+    "TEMPLATE_SIZE",
+    "box_frame",
+    "crop_box_frame",
+    "crop_extents",
+    "crop_parts",
+    "extent_threshold",
+    "in_extent",
+    "observation_space",
+    "previous_search_points",
+    "random_words",
+    "resample",
+    "resample_into",
+    "uniform_indices",
+]
+
 PREVIOUS_TIME = 0.0
 CURRENT_TIME = 0.1
 """Time channel of the previous frame's points, and the value M2-Track gives the current
@@ -35,6 +67,14 @@ CURRENT_MASK = 0.5
 """Previous-box mask values ``(outside, inside)`` when the previous box is the ground truth
 and when it is a prediction (M2-Track's softened prior), and the value M2-Track gives the
 current frame's points."""
+
+POINT_BOUND_M = 100.0
+"""Bound of the point observation spaces (metres, box frame); crops never reach it for boxes
+smaller than ~150 m."""
+SIZE_BOUND_M = 100.0
+"""Bound of the ``size`` space and of a served box's size (m)."""
+MOTION_BOUND_M = 100.0
+"""Bound of the ``motion`` space's translation (m); the rotation's is pi."""
 
 _LOW_HALF = 0 if sys.byteorder == "little" else 1  # of a uint64 viewed as two uint32
 _HIGH_SHIFT = np.uint64(32)
@@ -203,3 +243,45 @@ def resample(points: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.n
     points = np.asarray(points, dtype=np.float32)
     out = np.empty((n, points.shape[1] if points.ndim == 2 else 3), np.float32)
     return out, resample_into([points], [out], rng)[0]
+
+
+def observation_space(keys: Sequence[str]) -> gym.spaces.Dict:
+    """The env's observation space for ``keys`` (the default keys plus any opt-in ones, see
+    :data:`envs.spec.OBS_SHAPES`): float32 boxes with finite bounds."""
+    motion_hi = np.array([MOTION_BOUND_M] * 3 + [np.pi], dtype=np.float32)
+    bounds = {
+        "template": (-POINT_BOUND_M, POINT_BOUND_M),
+        "search": (-POINT_BOUND_M, POINT_BOUND_M),
+        "size": (0.0, SIZE_BOUND_M),
+        "motion": (-motion_hi, motion_hi),
+    }
+    space = gym.spaces.Dict(
+        {k: gym.spaces.Box(*bounds[k], OBS_SHAPES[k], np.float32) for k in OBS_SHAPES}
+    )
+    if "previous_search" in keys:
+        shape = OPTIONAL_OBS_SHAPES["previous_search"]
+        hi = np.array([POINT_BOUND_M] * 3 + [1.0, 1.0], np.float32)
+        lo = np.array([-POINT_BOUND_M] * 3 + [0.0, 0.0], np.float32)
+        space["previous_search"] = gym.spaces.Box(
+            np.tile(lo, (shape[0], 1)), np.tile(hi, (shape[0], 1)), shape, np.float32
+        )
+    return space
+
+
+def previous_search_points(
+    xyz: np.ndarray, ref: np.ndarray, count: int, certain: bool
+) -> np.ndarray:
+    """The ``previous_search`` observation ``(SEARCH_SIZE, 5)`` float32 from its resampled
+    points ``xyz`` ``(SEARCH_SIZE, 3)`` (reference box frame, m) of ``count`` distinct crop
+    points (0: zeros): the time column (:data:`PREVIOUS_TIME`) and the previous-box mask, 1 / 0
+    inside / outside ``ref`` ``(7,)`` scaled by the template scale when that box is
+    ``certain`` (the previous frame's ground truth), else M2-Track's softened 0.8 / 0.2."""
+    out = np.zeros((len(xyz), len(PREVIOUS_SEARCH_CHANNELS)), np.float32)
+    if count == 0:
+        return out
+    out[:, :3] = xyz
+    out[:, 3] = PREVIOUS_TIME
+    outside, inside = MASK_GT if certain else MASK_PREDICTED
+    threshold = extent_threshold(crop_extents(ref, [TEMPLATE_ENLARGEMENT]), np.float32)
+    out[:, 4] = np.where(in_extent(xyz.T, threshold), inside, outside)
+    return out

@@ -11,10 +11,11 @@ import numpy as np
 
 from envs.geometry import box_corners, world_to_box
 
-__all__ = ["render_birds_eye"]
+__all__ = ["render_birds_eye", "render_search_region"]
 
 BACKGROUND = (18, 18, 24)
 POINT_COLOR = (200, 200, 200)
+REFERENCE_COLOR, GT_COLOR, PREDICTION_COLOR = (70, 110, 255), (40, 200, 40), (230, 40, 40)
 
 
 def _draw_line(img: np.ndarray, p0: np.ndarray, p1: np.ndarray, color, width: int = 1) -> None:
@@ -81,3 +82,22 @@ def render_birds_eye(
         hp = to_px(heading[:, :2])
         _draw_line(img, hp[0], hp[1], color, width=1)
     return img
+
+
+def render_search_region(
+    points: np.ndarray,
+    ref: np.ndarray,
+    gt: np.ndarray,
+    pred: np.ndarray | None,
+    search_enlargement: tuple[float, float],
+) -> np.ndarray:
+    """The env's view ``(256, 256, 3)`` uint8: the search region's points ``(N, 3)`` (in the
+    frame of ``ref``, m), the reference box ``ref`` (blue), the ground truth ``gt`` (green) and
+    the prediction ``pred`` (red; ``None``: none yet), boxes ``(7,)`` in the LiDAR frame, over
+    the extent of the search crop ``(scale, offset_m)``."""
+    boxes = [(ref, REFERENCE_COLOR), (gt, GT_COLOR)]
+    if pred is not None:
+        boxes.append((pred, PREDICTION_COLOR))
+    scale, offset_m = search_enlargement
+    half = 0.5 * scale * float(max(ref[3], ref[4])) + offset_m
+    return render_birds_eye(points, boxes, frame_box=ref, extent_m=half)

@@ -27,7 +27,7 @@ def test_registration_idempotent():
 
 
 def test_make_kitti(kitti_root):
-    env = gym.make("pointtrack/KITTI-v0", root=kitti_root, setting="kitti-1")
+    env = gym.make("pointtrack/KITTI-v1", root=kitti_root, setting="kitti-1")
     assert json.loads(env.spec.to_json())["kwargs"]["root"] == kitti_root
     assert isinstance(env.unwrapped, TrackingEnv)
     obs, info = env.reset(seed=0)
@@ -35,19 +35,19 @@ def test_make_kitti(kitti_root):
     obs, r, term, trunc, info = env.step(np.zeros(4, np.float32))
     assert 0.0 <= r <= 1.0
     env = gym.make(
-        "pointtrack/KITTI-v0", root=kitti_root, categories=["Van"], template_mode="first"
+        "pointtrack/KITTI-v1", root=kitti_root, categories=["Van"], template_mode="first"
     )
     assert [t.category for t in env.unwrapped.tracklets] == ["Van"]
 
 
 def test_make_kitti_needs_root():
     with pytest.raises(ValueError, match="root"):
-        gym.make("pointtrack/KITTI-v0")
+        gym.make("pointtrack/KITTI-v1")
 
 
 def test_make_vec_async_module_qualified(kitti_root):
     vec = gym.make_vec(
-        "envs:pointtrack/KITTI-v0",
+        "envs:pointtrack/KITTI-v1",
         num_envs=2,
         vectorization_mode="async",
         root=kitti_root,
@@ -63,7 +63,7 @@ def test_make_vec_async_module_qualified(kitti_root):
 
 def test_make_synthetic_tiny():
     env = gym.make(
-        "pointtrack/Synthetic-v0",
+        "pointtrack/Synthetic-v1",
         preset="tiny",
         split="test",
         setting="kitti-1",

@@ -463,7 +463,7 @@ def test_env_on_nuscenes_layout_checks_and_oracle(world):
     from envs.geometry import offset_between
 
     env = gym.make(
-        "pointtrack/NuScenes-v0",
+        "pointtrack/NuScenes-v1",
         root=str(world),
         version="v1.0-mini",
         split="all",
@@ -490,7 +490,7 @@ def test_env_needs_root_or_preset():
     import gymnasium as gym
 
     with pytest.raises(ValueError, match="needs root=<nuScenes dataroot>"):
-        gym.make("pointtrack/NuScenes-v0")
+        gym.make("pointtrack/NuScenes-v1")
 
 
 # --------------------------------------------------------------------------- devkit

@@ -60,7 +60,7 @@ import torch
 from torch import nn
 
 from envs.geometry import world_to_box_torch
-from envs.observation import TEMPLATE_SCALE
+from envs.spec import DEFAULT_MAX_ACTION, OBS_SHAPES, TEMPLATE_SCALE
 from trackers import ops
 from trackers.backbone import Backbone, BackboneConfig
 from trackers.config import config_from_dict, config_to_dict
@@ -78,16 +78,6 @@ __all__ = [
     "prepare_observation",
 ]
 
-#: The env's default action bound ``a_max`` (metres, metres, metres, radians).
-DEFAULT_MAX_ACTION = (5.0, 5.0, 3.0, math.pi)
-
-#: Observation keys and their per-sample shapes (``envs.observation`` sizes).
-OBS_SHAPES: dict[str, tuple[int, ...]] = {
-    "template": (512, 3),
-    "search": (1024, 3),
-    "size": (3,),
-    "motion": (4,),
-}
 
 #: The slim backbone of the shipped checkpoints (the ``"slim"`` size of P2B, BAT and GPT): about
 #: 6x cheaper per training step than the papers' widths, same architecture and inputs; ragged

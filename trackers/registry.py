@@ -42,6 +42,8 @@ from typing import Any
 
 import torch
 
+from envs.spec import TEMPLATE_MODES, TRACKER_OPTION_KEYS, EnvOptions
+
 __all__ = [
     "CHECKPOINT_DIR",
     "ENV_OPTION_KEYS",
@@ -70,9 +72,10 @@ FORMAT = "pointtrack-tracker"
 VERSION = "1"
 _MANIFEST_FORMAT = "pointtrack-checkpoint-manifest"
 _KINDS = ("all", "learned", "baseline", "checkpoint")
-ENV_OPTION_KEYS = ("template_mode", "search_enlargement")
+ENV_OPTION_KEYS = TRACKER_OPTION_KEYS
 """The ``TrackingEnv`` options a tracker may record (``tracker.env_options``): those where
-training and evaluation must agree (the template composition, the search region)."""
+training and evaluation must agree (the template composition, the search region); see
+:data:`envs.spec.TRACKER_OPTION_KEYS`."""
 
 # name -> class; filled by @register (the built-ins when the trackers package is imported)
 _REGISTRY: dict[str, type] = {}
@@ -157,8 +160,6 @@ def check_env_options(options: Any, where: str) -> dict[str, Any]:
     import math
     import numbers
 
-    from envs.tracking_env import TEMPLATE_MODES
-
     if not isinstance(options, dict):
         raise ValueError(f"{where}: env_options must be a JSON object, got {options!r}")
     unknown = sorted(set(options) - set(ENV_OPTION_KEYS))
@@ -193,12 +194,7 @@ def check_env_options(options: Any, where: str) -> dict[str, Any]:
 
 def default_env_options() -> dict[str, Any]:
     """The ``TrackingEnv`` defaults of the :data:`ENV_OPTION_KEYS` (what ``{}`` stands for)."""
-    import inspect
-
-    from envs.tracking_env import TrackingEnv
-
-    params = inspect.signature(TrackingEnv).parameters
-    return {key: params[key].default for key in ENV_OPTION_KEYS}
+    return EnvOptions().tracker_options()
 
 
 def env_options_metadata(tracker: Any) -> str | None:

@@ -402,14 +402,14 @@ def train_env_factory(
     ``env_options``: the base tracker's ``env_options`` (its template mode, search region);
     ``observation_keys``: the env's observation (``None``: its default; M2-Track needs
     ``previous_search``, see ``training.evaluate.observation_keys_for``)."""
-    from envs.data import KittiTracking
-    from envs.tracking_env import TrackingEnv
+    from envs.tracking_env import make_tracking_env
 
     setting = _setting(cfg)
-    data = KittiTracking(_root(cfg), "train", list(setting.observed))
     # clips start anywhere in a tracklet (the env's start_frame / max_steps episode options)
-    base = TrackingEnv(
-        data,
+    base = make_tracking_env(
+        "kitti",
+        root=_root(cfg),
+        split="train",
         setting=setting,
         categories=setting.observed,
         sampling="random",
@@ -785,7 +785,7 @@ def val_check(cfg: FinetuneConfig, base: Any, tuned: Any, out: Path) -> dict[str
     tracklets, eval seed 0 (a quick check only: too few tracklets to tell a gain from noise;
     the protocol in docs/rl.md is what measures one); each with its ``env_options``."""
     from envs.data import KittiTracking
-    from envs.tracking_env import TrackingEnv
+    from envs.tracking_env import make_tracking_env
     from training.evaluate import env_options_for, evaluate, observation_keys_for
 
     setting = _setting(cfg)
@@ -793,7 +793,7 @@ def val_check(cfg: FinetuneConfig, base: Any, tuned: Any, out: Path) -> dict[str
     result: dict[str, Any] = {}
     for name, tracker in (("base", base), ("finetuned", tuned)):
         options = env_options_for([tracker])
-        env = TrackingEnv(
+        env = make_tracking_env(
             data,
             setting=setting,
             categories=setting.observed,

@@ -241,7 +241,7 @@ def _truncate(tracklet, max_frames: int | None):
 def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, float]]:
     """OPE on the val split, observed categories only, via ``training.evaluate.evaluate``."""
     from envs.data import class_specific, get_setting
-    from envs.tracking_env import TrackingEnv
+    from envs.tracking_env import make_tracking_env
     from training.evaluate import evaluate, observation_keys_for
 
     st = class_specific(cfg.category) if cfg.category else get_setting(cfg.setting)
@@ -259,7 +259,7 @@ def default_val_fn(cfg: TrainConfig) -> Callable[[torch.nn.Module], dict[str, fl
         import gymnasium as gym
 
         def make_env():
-            return TrackingEnv(
+            return make_tracking_env(
                 holder,
                 setting=st,
                 categories=st.observed,

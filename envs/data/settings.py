@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from envs.data.kitti import CATEGORIES
+
 __all__ = ["SETTINGS", "Setting", "class_specific", "get_setting"]
 
 
@@ -53,8 +55,6 @@ SETTINGS: dict[str, Setting] = {
 
 def class_specific(category: str) -> Setting:
     """Class-specific mode: train and test on one category (``observed=(category,)``, no unseen)."""
-    from envs.data.kitti import CATEGORIES
-
     if category not in CATEGORIES:
         raise ValueError(f"unknown category {category!r}; valid: {', '.join(CATEGORIES)}")
     return Setting(f"class-specific:{category}", (category,), ())

@@ -11,9 +11,19 @@ import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from envs.data.kitti import (
+    Calibration,
+    LabelRow,
+    declare_scenes,
+    lidar_to_camera_boxes,
+    write_calibration,
+    write_labels,
+    write_scan,
+)
 from envs.data.tracklet import Tracklet
 
 __all__ = ["ToyDataset", "make_toy_dataset"]
@@ -75,18 +85,6 @@ class ToyDataset:
     def write_kitti(self, root: str | os.PathLike, scene: str = "0019") -> str:
         """Write the dataset in the KITTI tracking layout under ``root`` as scene ``scene``
         (``0019``: the test split) with a KITTI-like calibration; returns ``root``."""
-        from pathlib import Path
-
-        from envs.data.kitti import (
-            Calibration,
-            LabelRow,
-            declare_scenes,
-            lidar_to_camera_boxes,
-            write_calibration,
-            write_labels,
-            write_scan,
-        )
-
         root = Path(root)
         velo_to_cam = np.array(
             [[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, -0.08], [1.0, 0.0, 0.0, -0.27]]

@@ -12,11 +12,11 @@ Entry points:
 Read a world with ``envs.data.KittiTracking(root, split, categories)``.
 """
 
+from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
 from envs.synthetic.objects import CATEGORIES, SIZE_STATS
 from envs.synthetic.sensor import SENSORS, SensorModel, get_sensor
 from envs.synthetic.world import (
     GENERATOR_VERSION,
-    KITTI_LIKE_CALIBRATION,
     PRESETS,
     Preset,
     clean_stale_temps,

@@ -43,13 +43,12 @@ import numpy as np
 from envs.data.nuscenes import LIDAR_CHANNEL, split_scenes
 from envs.synthetic.objects import CATEGORIES
 from envs.synthetic.scene import (
-    LABEL_RANGE,
-    Scene,
     agent_boxes_world,
     render_frame,
     sensor_pose,
     world_to_sensor_boxes,
 )
+from envs.synthetic.scene_types import LABEL_RANGE, Scene
 from envs.synthetic.sensor import SensorModel, get_sensor
 from envs.synthetic.world import (
     MANIFEST,

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.data import KittiTracking
+from envs.data.kitti import read_scan, scan_path
 from envs.geometry import box_corners
 from envs.plotting import pyplot, save_figure
 
@@ -26,8 +28,6 @@ _COLORS = {
 def frame_boxes(root: str | Path, scene: str, frame: int) -> list[tuple[str, np.ndarray]]:
     """``(category, box (7,))`` of every labelled object of ``scene`` at ``frame``, read back
     through :class:`envs.data.KittiTracking` (so the picture shows what a loader sees)."""
-    from envs.data import KittiTracking
-
     out = []
     for tr in KittiTracking(root, "all").tracklets:
         if tr.scene != scene:
@@ -58,8 +58,6 @@ def save_preview(
         dpi: resolution.
     """
     plt = pyplot()
-
-    from envs.data.kitti import read_scan, scan_path
 
     root = Path(root)
     if scene is None:

@@ -20,10 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from envs.data.kitti import Calibration, camera_to_lidar_boxes, read_calibration, read_labels
+from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
 from envs.synthetic.objects import make_object
 from envs.synthetic.raycast import Parts
-from envs.synthetic.scene import Agent, Ground, Scene, StaticObject, make_pole, make_tree
+from envs.synthetic.scene_types import Agent, Ground, Scene
 from envs.synthetic.sensor import SensorModel
+from envs.synthetic.street import StaticObject, make_pole, make_tree
 
 __all__ = ["SHAPE_OF", "build_replay_scene", "replay_scene_ids"]
 
@@ -75,8 +77,6 @@ def build_replay_scene(
     if calib_file.is_file():
         calib = read_calibration(calib_file)
     else:
-        from envs.synthetic.world import KITTI_LIKE_CALIBRATION
-
         calib = KITTI_LIKE_CALIBRATION
     rng = np.random.default_rng([int(seed), int(scene_id), 5])
     objs = [r for r in rows if r.type != "DontCare" and r.track_id >= 0]

@@ -14,8 +14,12 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.data import KittiTracking
 from envs.plotting import pyplot, save_figure
-from envs.weather.levels import KINDS, describe
+from envs.synthetic import ensure_world
+from envs.weather.fog import fog_alpha
+from envs.weather.levels import KINDS, describe, parameter
+from envs.weather.precipitation import precipitation_rate
 from envs.weather.wrapper import WeatherTransform
 
 
@@ -64,9 +68,6 @@ def street_scan(seed: int = 0, beams: int = 64, columns: int = 1800) -> tuple[np
 def synthetic_frame(seed: int = 0):
     """A frame of the synthetic ``tiny`` world with a target box, or ``None`` if unavailable."""
     try:
-        from envs.data import KittiTracking
-        from envs.synthetic import ensure_world
-
         root = ensure_world("tiny", seed=seed)
         ds = KittiTracking(root, "all", ("Car",))
         tr = max(ds.tracklets, key=len)
@@ -77,10 +78,6 @@ def synthetic_frame(seed: int = 0):
 
 
 def _corrupt_with_source(kind, level, scan, rng):
-    from envs.weather.fog import fog_alpha
-    from envs.weather.levels import parameter
-    from envs.weather.precipitation import precipitation_rate
-
     p = parameter(kind, level)
     if kind == "fog":
         return fog_alpha(scan[:, :3], scan[:, 3], rng, p, return_source=True)

@@ -23,6 +23,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from envs.weather.corruptions import corrupt
+from envs.weather.fog import check_fog_mode
 from envs.weather.levels import KINDS, UNITS, check_kind, check_level, parameter
 
 
@@ -40,8 +42,6 @@ class WeatherTransform:
     def __init__(
         self, kind: str, level: int, seed: int = 0, cache_size: int = 4, fog_mode: str = "reference"
     ) -> None:
-        from envs.weather.fog import check_fog_mode
-
         self.kind = check_kind(kind)
         self.level = check_level(level)
         self.seed = int(seed)
@@ -68,8 +68,6 @@ class WeatherTransform:
         return np.random.default_rng(np.random.SeedSequence(key))
 
     def __call__(self, points: np.ndarray, tracklet_id: str, frame: int) -> np.ndarray:
-        from envs.weather import corrupt
-
         scene = str(tracklet_id).split("/", 1)[0]
         key = (scene, int(frame))
         hit = self._cache.get(key)

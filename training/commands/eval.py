@@ -17,7 +17,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from envs.tracking_env import TEMPLATE_MODES
+from envs.data.nuscenes import SOT_SPLITS
+from envs.tracking_env import TEMPLATE_MODES, make_tracking_env
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -151,33 +152,21 @@ def explicit_env_options(args: argparse.Namespace) -> dict[str, Any]:
 def build_env(args: argparse.Namespace, **overrides: Any):
     """The :class:`~envs.tracking_env.TrackingEnv` the arguments describe; ``overrides`` (e.g.
     ``scan_transform=...``) go to the env."""
-    from envs.tracking_env import make_kitti_env, make_synthetic_env
-
     kwargs = env_kwargs(args)
     kwargs.update(overrides)
-    if args.dataset == "nuscenes":
-        from envs.data.nuscenes import SOT_SPLITS
-        from envs.nuscenes_env import make_nuscenes_env
-
-        kwargs["split"] = SOT_SPLITS[kwargs["split"]]
-        if args.root:
-            return make_nuscenes_env(root=args.root, version=args.version, **kwargs)
-        return make_nuscenes_env(
-            version=args.version, preset=args.preset, sensor=args.sensor, seed=args.seed, **kwargs
-        )
     if args.dataset == "kitti" and not args.root:
         raise SystemExit("pointtrack eval: --dataset kitti needs --root DIR")
-    if not args.root:
-        return make_synthetic_env(preset=args.preset, sensor=args.sensor, seed=args.seed, **kwargs)
-    if not getattr(args, "allow_missing_scenes", False):
-        return make_kitti_env(root=args.root, **kwargs)  # KITTI, or a generated world
-    from envs.data import KittiTracking, get_setting
-    from envs.tracking_env import TrackingEnv
-
-    categories = kwargs.pop("categories")
-    load = categories or (get_setting(kwargs["setting"]).categories if kwargs["setting"] else None)
-    dataset = KittiTracking(args.root, kwargs["split"], load, allow_missing_scenes=True)
-    return TrackingEnv(dataset, categories=categories, **kwargs)
+    if args.root:  # KITTI, a generated world, or a nuScenes dataroot
+        source = "nuscenes" if args.dataset == "nuscenes" else "kitti"
+        kwargs["root"] = args.root
+        if source == "kitti" and getattr(args, "allow_missing_scenes", False):
+            kwargs["allow_missing_scenes"] = True
+    else:
+        source = args.dataset
+        kwargs.update(preset=args.preset, sensor=args.sensor, seed=args.seed)
+    if source == "nuscenes":
+        kwargs.update(version=args.version, split=SOT_SPLITS[kwargs["split"]])
+    return make_tracking_env(source, **kwargs)
 
 
 def build_vector_env(args: argparse.Namespace, num_envs: int, **overrides: Any):
