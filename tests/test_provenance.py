@@ -25,6 +25,7 @@ from trackers.provenance import (
     with_provenance_bytes,
 )
 from trackers.registry import CHECKPOINT_DIR, read_safetensors
+from training.checkpoint import parent_entry
 from training.provenance import (
     ProvenanceWarning,
     check_candidates,
@@ -32,11 +33,10 @@ from training.provenance import (
     eval_guard,
     finetune_provenance,
     mark_unseen,
-    save_selected,
     selection_round,
     train_provenance,
 )
-from training.selection import SelectionConfig, ValPart
+from training.selection import SelectionConfig, ValPart, save_selected
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI1_OBSERVED = ["Cyclist", "Pedestrian", "Van"]
@@ -208,7 +208,7 @@ def test_training_checkpoint_carries_train_provenance(tmp_path):
     model = _slim_p2b()
     cfg = TrainConfig(tracker="p2b", model_size="slim", batch_size=16, init_weights="p2b-kitti1-u")
     root = "/cache/worlds/default-hdl64-s0-0123456789ab"
-    prov = train_provenance(cfg.to_dict(), root, 7)
+    prov = train_provenance(cfg.to_dict(), root, 7, parent=parent_entry("p2b-kitti1-u"))
     assert (prov.samples, prov.steps, prov.generator_digest) == (112, 7, "0123456789ab")
     assert prov.categories == KITTI1_OBSERVED and prov.splits == ["train"]
     assert prov.parent["provenance"] == trackers.load("p2b-kitti1-u").provenance
@@ -234,7 +234,7 @@ def test_finetune_provenance_names_the_base_and_its_categories(tmp_path):
     from training.finetune import FinetuneConfig
 
     cfg = FinetuneConfig(tracker="p2b-kitti2-u", setting="kitti-1", data_root=str(tmp_path))
-    prov = finetune_provenance(cfg, 4096)
+    prov = finetune_provenance(cfg, 4096, parent_entry(cfg.tracker))
     assert (prov.written_by, prov.steps, prov.root_kind, prov.dataset) == (
         "finetune",
         4096,
@@ -296,10 +296,10 @@ def _tracker(prov: Provenance):
 def test_eval_guard_flags_a_file_trained_on_the_unseen_category():
     loaded = {"car-file": _tracker(_stage(categories=["Car", "Van"]))}
     with pytest.warns(ProvenanceWarning, match=r"'car-file' was trained on \['Car'\].*kitti-1"):
-        trained = eval_guard(loaded, _args())
+        trained = eval_guard(loaded, _args(), "kitti-1")
     assert trained == {"car-file": ["Car", "Van"]}
     with pytest.raises(ValueError, match=r"trained on \['Car'\].*--strict"):
-        eval_guard(loaded, _args(strict=True))
+        eval_guard(loaded, _args(strict=True), "kitti-1")
 
 
 def test_eval_guard_flags_the_training_and_selection_data():
@@ -307,20 +307,22 @@ def test_eval_guard_flags_the_training_and_selection_data():
     loaded = {"f": _tracker(chosen)}
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        eval_guard(loaded, _args())  # world 0 test: held out, no warning
-        eval_guard(loaded, _args(seed=1, split="test"))
-        eval_guard(loaded, _args(preset="small", split="train"))  # another world
+        eval_guard(loaded, _args(), "kitti-1")  # world 0 test: held out, no warning
+        eval_guard(loaded, _args(seed=1, split="test"), "kitti-1")
+        eval_guard(loaded, _args(preset="small", split="train"), "kitti-1")  # another world
     with pytest.warns(
         ProvenanceWarning, match=r"'f' was trained on split\(s\) \['train'\].*seed 0"
     ):
-        eval_guard(loaded, _args(split="all"))
+        eval_guard(loaded, _args(split="all"), "kitti-1")
     with pytest.warns(ProvenanceWarning, match=r"'f' was selected on split\(s\) \['val'\].*seed 1"):
-        eval_guard(loaded, _args(seed=1, split="val"))
+        eval_guard(loaded, _args(seed=1, split="val"), "kitti-1")
     with pytest.raises(ValueError, match="trained on split.*world evaluated"):
-        eval_guard(loaded, _args(split="train", strict=True))
+        eval_guard(loaded, _args(split="train", strict=True), "kitti-1")
     with pytest.warns(ProvenanceWarning, match="records no .*provenance"):
-        assert eval_guard({"old": _tracker(Provenance())}, _args()) == {}
-    assert eval_guard({"previous_box": object()}, _args()) == {}  # baselines learnt nothing
+        assert eval_guard({"old": _tracker(Provenance())}, _args(), "kitti-1") == {}
+    assert (
+        eval_guard({"previous_box": object()}, _args(), "kitti-1") == {}
+    )  # baselines learnt nothing
 
 
 def _report(observed: dict[str, bool]) -> dict:
@@ -471,7 +473,7 @@ def test_finetune_provenance_names_the_world_ensure_world_makes():
 
     cfg = FinetuneConfig(tracker="p2b-kitti1-u", preset="tiny", world_seed=0)
     root = ensure_world(preset="tiny", sensor="hdl64", seed=0)
-    prov = finetune_provenance(cfg, 8)
+    prov = finetune_provenance(cfg, 8, parent_entry(cfg.tracker))
     assert (prov.preset, prov.world_seed, prov.root_kind) == ("tiny", 0, "generated")
     assert (
         prov.generator_digest

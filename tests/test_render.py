@@ -11,8 +11,6 @@ import sys
 import numpy as np
 import pytest
 
-pytest.importorskip("envs.synthetic")
-
 TRACKLET = "0019/13"  # 5 frames in the tiny world's test split: 4 tracked frames
 ARGS = ["--preset", "tiny", "--setting", "kitti-1"]
 

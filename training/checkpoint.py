@@ -18,6 +18,7 @@ states, epoch, step and the run's config. What this module guarantees:
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import random
@@ -28,9 +29,15 @@ from typing import Any
 import numpy as np
 import torch
 
+import trackers
+from trackers.provenance import UNKNOWN, Provenance
+from trackers.registry import find_checkpoint, read_safetensors
 from training.config import IDENTITY_EXEMPT, LEGACY_DEFAULTS, TrainConfig
+from training.provenance import train_provenance
 
 __all__ = [
+    "checkpoint_provenance",
+    "parent_entry",
     "CHECKPOINT_FORMAT",
     "CheckpointError",
     "atomic_save",
@@ -218,9 +225,7 @@ def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
     (``tracker.env_options``, :func:`training.config.checkpoint_env_options`) and the
     provenance it records (``tracker.provenance``, :mod:`training.provenance`), ready for
     ``trackers.save`` or evaluation."""
-    import trackers
     from training.config import checkpoint_env_options, checkpoint_tracker_kwargs
-    from training.provenance import checkpoint_provenance
 
     ckpt = read_checkpoint(path)
     weights, config = _validated_weights(ckpt, path)
@@ -269,3 +274,38 @@ def unwritable_reason(directory: str | Path) -> str | None:
     except OSError as exc:
         return str(exc.strerror or exc)
     return None
+
+
+def parent_entry(spec: str) -> dict[str, Any]:
+    """``{"name", "sha256", "provenance"}`` of the checkpoint a run starts from (a tracker file,
+    a shipped name or a training checkpoint); its provenance unknown when it records none."""
+    path = find_checkpoint(spec)
+    if path is None:
+        return {"name": str(spec), "sha256": UNKNOWN, "provenance": Provenance()}
+    if is_training_checkpoint(path):
+        provenance = checkpoint_provenance(read_checkpoint(path))
+    elif path.suffix == ".safetensors":
+        meta, _ = read_safetensors(path, "tracker checkpoint")
+        provenance = Provenance.from_json(meta.get("provenance"), f"{path}: provenance")
+    else:  # a .pt tracker file: trackers.load reads it (and its provenance) safely
+        provenance = trackers.load(path).provenance
+    with open(path, "rb") as f:
+        digest = hashlib.file_digest(f, "sha256").hexdigest()
+    return {"name": str(spec), "sha256": digest, "provenance": provenance}
+
+
+def checkpoint_provenance(ckpt: Mapping[str, Any]) -> Provenance:
+    """The provenance a training checkpoint (``best.pt`` / ``last.pt``) records; one written
+    before provenance existed gets what its config says, the commit and world digest unknown."""
+    raw = ckpt.get("provenance")
+    if raw is not None:
+        return Provenance.from_json(raw, "training checkpoint provenance")
+    config = ckpt["config"]
+    init = config.get("init_weights")
+    return train_provenance(
+        config,
+        None,
+        int(ckpt.get("step", 0)),
+        parent=parent_entry(init) if init else None,
+        commit=UNKNOWN,
+    )

@@ -55,6 +55,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
+from training.checkpoint import parent_entry
 from training.provenance import check_finetune_categories, finetune_provenance
 
 __all__ = [
@@ -580,7 +581,9 @@ class _PPORun:
             trackers.save(
                 self.policy.tracker,
                 self.out / "snapshots" / f"tracker-{self.model.num_timesteps:08d}.safetensors",
-                provenance=finetune_provenance(self.cfg, self.model.num_timesteps),
+                provenance=finetune_provenance(
+                    self.cfg, self.model.num_timesteps, parent_entry(self.cfg.tracker)
+                ),
             )
 
     def _non_finite(self, what: str) -> None:
@@ -689,7 +692,9 @@ class _PPORun:
         path = trackers.save(
             self.policy.tracker,
             self.out / "tracker.safetensors",
-            provenance=finetune_provenance(cfg, self.model.num_timesteps),
+            provenance=finetune_provenance(
+                cfg, self.model.num_timesteps, parent_entry(cfg.tracker)
+            ),
         )
         self.checkpoint(finished=True)
         wall = time.perf_counter() - self.t0

@@ -64,6 +64,7 @@ from training.checkpoint import (
     config_differences,
     is_training_checkpoint,
     load_weights,
+    parent_entry,
     read_checkpoint,
     remove_stale_temps,
     restore_rng_state,
@@ -74,6 +75,7 @@ from training.checkpoint import (
 )
 from training.config import TrainConfig
 from training.losses import pooled_objective
+from training.provenance import train_provenance
 from training.sam import SAM
 from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
@@ -428,8 +430,6 @@ class Trainer:
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict[str, Any]:
-        from training.provenance import train_provenance
-
         cfg_dict = self.cfg.to_dict()
         return {
             "format": CHECKPOINT_FORMAT,
@@ -448,7 +448,10 @@ class Trainer:
             "best_epoch": self.best_epoch,
             "history": json.dumps(self.history),
             "provenance": train_provenance(
-                cfg_dict, getattr(self.data, "root", None), self.step
+                cfg_dict,
+                getattr(self.data, "root", None),
+                self.step,
+                parent=parent_entry(self.cfg.init_weights) if self.cfg.init_weights else None,
             ).to_json(),
         }
 

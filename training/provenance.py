@@ -33,14 +33,11 @@ __all__ = [
     "ProvenanceWarning",
     "check_candidates",
     "check_finetune_categories",
-    "checkpoint_provenance",
     "config_hash",
     "eval_guard",
     "finetune_provenance",
     "git_commit",
     "mark_unseen",
-    "parent_entry",
-    "save_selected",
     "selected_provenance",
     "selection_round",
     "train_provenance",
@@ -93,30 +90,6 @@ def _world_digest(root: str | Path | None) -> str:
     return match.group(1) if match else UNKNOWN
 
 
-def parent_entry(spec: str) -> dict[str, Any]:
-    """``{"name", "sha256", "provenance"}`` of the checkpoint a run starts from (a tracker file,
-    a shipped name or a training checkpoint); its provenance unknown when it records none."""
-    from trackers.registry import find_checkpoint, read_safetensors
-
-    path = find_checkpoint(spec)
-    if path is None:
-        return {"name": str(spec), "sha256": UNKNOWN, "provenance": Provenance()}
-    from training.checkpoint import is_training_checkpoint, read_checkpoint
-
-    if is_training_checkpoint(path):
-        provenance = checkpoint_provenance(read_checkpoint(path))
-    elif path.suffix == ".safetensors":
-        meta, _ = read_safetensors(path, "tracker checkpoint")
-        provenance = Provenance.from_json(meta.get("provenance"), f"{path}: provenance")
-    else:  # a .pt tracker file: trackers.load reads it (and its provenance) safely
-        import trackers
-
-        provenance = trackers.load(path).provenance
-    with open(path, "rb") as f:
-        digest = hashlib.file_digest(f, "sha256").hexdigest()
-    return {"name": str(spec), "sha256": digest, "provenance": provenance}
-
-
 def _setting_categories(setting: str | None, category: str | None) -> list[str] | str:
     from envs.data import get_setting
 
@@ -126,14 +99,19 @@ def _setting_categories(setting: str | None, category: str | None) -> list[str] 
 
 
 def train_provenance(
-    config: Mapping[str, Any], root: str | Path | None, step: int, *, commit: str | None = None
+    config: Mapping[str, Any],
+    root: str | Path | None,
+    step: int,
+    *,
+    parent: dict[str, Any] | None = None,
+    commit: str | None = None,
 ) -> Provenance:
     """The provenance of a ``pointtrack train`` run after ``step`` optimiser steps: its config
-    (a ``TrainConfig.to_dict()``), the root its samples came from (``None``: unknown) and the
-    commit (default: the checked-out one)."""
+    (a ``TrainConfig.to_dict()``), the root its samples came from (``None``: unknown), the
+    checkpoint it started from (``training.checkpoint.parent_entry`` of its ``init_weights``)
+    and the commit (default: the checked-out one)."""
     dataset = config.get("dataset", UNKNOWN)
     synthetic = dataset in ("synthetic", "nuscenes") and not config.get("data_root")
-    init = config.get("init_weights")
     return Provenance(
         written_by="train",
         dataset=dataset,
@@ -148,25 +126,17 @@ def train_provenance(
         samples=int(step) * int(config.get("batch_size", 0)),
         steps=int(step),
         selection=[],
-        parent=parent_entry(init) if init else None,
+        parent=parent,
         git_commit=git_commit() if commit is None else commit,
         config_hash=config_hash(config),
     )
 
 
-def checkpoint_provenance(ckpt: Mapping[str, Any]) -> Provenance:
-    """The provenance a training checkpoint (``best.pt`` / ``last.pt``) records; one written
-    before provenance existed gets what its config says, the commit and world digest unknown."""
-    raw = ckpt.get("provenance")
-    if raw is not None:
-        return Provenance.from_json(raw, "training checkpoint provenance")
-    return train_provenance(ckpt["config"], None, int(ckpt.get("step", 0)), commit=UNKNOWN)
-
-
-def finetune_provenance(cfg: Any, steps: int) -> Provenance:
+def finetune_provenance(cfg: Any, steps: int, parent: dict[str, Any]) -> Provenance:
     """The provenance of a ``pointtrack finetune`` result after ``steps`` env steps
     (``cfg``: a ``training.finetune.FinetuneConfig``): the train split of its world, its
-    setting's observed categories (what ``train_env_factory`` serves), the base as parent.
+    setting's observed categories (what ``train_env_factory`` serves), the base as ``parent``
+    (``training.checkpoint.parent_entry(cfg.tracker)``).
     A library caller that passes its own ``make_env`` to ``training.finetune.finetune`` must
     make ``cfg`` describe that env: the record is ``cfg``'s."""
     from dataclasses import asdict
@@ -192,7 +162,7 @@ def finetune_provenance(cfg: Any, steps: int) -> Provenance:
         samples=int(steps),
         steps=int(steps),
         selection=[],
-        parent=parent_entry(cfg.tracker),
+        parent=parent,
         git_commit=git_commit(),
         config_hash=config_hash(asdict(cfg)),
     )
@@ -287,7 +257,7 @@ def _eval_world(args: Any) -> dict[str, Any] | None:
     }
 
 
-def eval_guard(loaded: Mapping[str, Any], args: Any) -> dict[str, list[str]]:
+def eval_guard(loaded: Mapping[str, Any], args: Any, setting: str | None) -> dict[str, list[str]]:
     """Check every tracker ``eval`` is about to run against its provenance, before any work.
 
     Warns (:class:`ProvenanceWarning`; ``args.strict``: ``ValueError``) naming the file and the
@@ -296,9 +266,7 @@ def eval_guard(loaded: Mapping[str, Any], args: Any) -> dict[str, list[str]]:
     provenance is unknown. Returns ``{tracker: categories it trained on}`` for
     :func:`mark_unseen` (only trackers whose categories are known)."""
     from envs.data import get_setting
-    from training.commands.eval import env_kwargs
 
-    setting = env_kwargs(args)["setting"]
     unseen = set(get_setting(setting).unseen) if setting else set()
     world = _eval_world(args)
     splits = {"train", "val", "test"} if args.split == "all" else {args.split}
@@ -424,21 +392,3 @@ def check_finetune_categories(base: Any, setting: str, allow: bool) -> None:
             f"(trained in setting {provenance.setting}): fine-tuning on it ends the class-agnostic "
             "study of those categories; pass --allow-held-out to do it on purpose"
         )
-
-
-def save_selected(rows: Sequence[Mapping[str, Any]], config: Any, path: str | Path) -> Path:
-    """Write the first of ``select``'s ranked ``rows`` to ``path`` as a tracker file whose
-    provenance adds this selection round (:func:`selection_round`); ``ValueError`` when it has
-    no weights (a baseline) or cannot be saved."""
-    import trackers
-    from trackers.base import Tracker
-    from training.selection import load_candidate
-
-    first = str(rows[0]["candidate"])
-    tracker = load_candidate(first)
-    if not isinstance(tracker, Tracker) or type(tracker) is not trackers.tracker_class(
-        tracker.name
-    ):
-        raise ValueError(f"--save: the first-ranked candidate {first!r} is not a tracker file")
-    round_ = selection_round(config, rows)
-    return trackers.save(tracker, path, provenance=selected_provenance(tracker, round_))

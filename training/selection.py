@@ -29,6 +29,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import trackers
+from trackers.base import Tracker
+from training.provenance import check_candidates, selected_provenance, selection_round
+
 logger = logging.getLogger(__name__)
 
 __all__ = [
@@ -224,7 +228,6 @@ def score_candidates(
         observation_keys_for,
         save_report,
     )
-    from training.provenance import check_candidates
 
     config = config if config is not None else SelectionConfig()
     if not candidates:
@@ -452,3 +455,17 @@ def format_ranking(
             line += f"{gap:>21} | {u['p_first']:6.2f} | "
         lines.append(line + " ".join(f"{r['parts'][p]['success']:7.1f}" for p in parts))
     return "\n".join(lines)
+
+
+def save_selected(rows: Sequence[Mapping[str, Any]], config: Any, path: str | Path) -> Path:
+    """Write the first of ``select``'s ranked ``rows`` to ``path`` as a tracker file whose
+    provenance adds this selection round (:func:`selection_round`); ``ValueError`` when it has
+    no weights (a baseline) or cannot be saved."""
+    first = str(rows[0]["candidate"])
+    tracker = load_candidate(first)
+    if not isinstance(tracker, Tracker) or type(tracker) is not trackers.tracker_class(
+        tracker.name
+    ):
+        raise ValueError(f"--save: the first-ranked candidate {first!r} is not a tracker file")
+    round_ = selection_round(config, rows)
+    return trackers.save(tracker, path, provenance=selected_provenance(tracker, round_))

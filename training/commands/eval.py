@@ -193,7 +193,9 @@ def run(args: argparse.Namespace) -> int:
         return _run_weather(args)
     # every tracker before any data or evaluation, so a typo in the last one fails in a second
     loaded = load_trackers(args)
-    trained = eval_guard(loaded, args)  # provenance: leaks warned (--strict: refused)
+    trained = eval_guard(
+        loaded, args, env_kwargs(args)["setting"]
+    )  # provenance: leaks warned (--strict: refused)
     check_out(args)
     reports = {}
     # one env per distinct option set the trackers record (e.g. recipe v2's template mode)
@@ -281,7 +283,9 @@ def _run_weather(args: argparse.Namespace) -> int:
     from training.robustness import run_weather_eval
 
     loaded = load_trackers(args)
-    eval_guard(loaded, args)  # provenance: leaks warned (--strict: refused)
+    eval_guard(
+        loaded, args, env_kwargs(args)["setting"]
+    )  # provenance: leaks warned (--strict: refused)
     check_out(args)
     bases = {}  # tracker name -> the clean env of its option set (one per distinct set)
     for options, names in env_option_groups(loaded, explicit_env_options(args)):

@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from trackers.registry import find_checkpoint
-    from training.provenance import parent_entry
+    from training.checkpoint import parent_entry
 
     for spec in args.files:
         path = find_checkpoint(spec)

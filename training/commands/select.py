@@ -135,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         log_ranking(rows, uncertainty, out / "logs", formats)
         print(f"wrote {path} and {out / 'logs'}")
     if args.save:
-        from training.provenance import save_selected
+        from training.selection import save_selected
 
         print(f"wrote {save_selected(rows, config, args.save)}")
     return 0
