@@ -904,7 +904,6 @@ class ResidualTracker:
             "format": RESIDUAL_FORMAT,
             "version": FORMAT_VERSION,
             "base_tracker": self.base.name,
-
             "scale": json.dumps([float(s) for s in self.scale]),
             "name": self.name,
             "log_std_init": json.dumps(self.log_std_init),
