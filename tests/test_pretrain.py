@@ -194,7 +194,7 @@ def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
     held = trainer(trackers.save(source, tmp_path / "held.safetensors")).model
     for k, v in source.state_dict().items():
         assert torch.equal(held.state_dict()[k], v), k
-    with pytest.raises(TrainingError, match="hold_chamfer_m.*inference settings"):
+    with pytest.raises(ValueError, match="hold_chamfer_m.*inference settings"):
         trainer(path, tracker_config={"hold_chamfer_m": 0.15})
     with pytest.raises(TrainingError, match="another tracker config.*cluster_radius"):
         trainer(path, tracker_config={"head": {"cluster_radius": 0.5}})
