@@ -15,6 +15,7 @@ import torch
 from test_trackers import tiny
 
 import trackers
+from trackers import ops
 from trackers.base import prepare_observation
 from trackers.decision import InferenceConfig, choose_action, decide, keeps_box
 
@@ -323,3 +324,25 @@ def test_inference_config_checks_its_fields():
     tracker.env_options = {"template_mode": "first_and_previous_merged"}
     with pytest.raises(ValueError, match="template_mode 'first_and_previous_merged'"):
         tracker.act(_still_target_observation(1))
+
+
+def test_distinct_points_and_chamfer_distance_on_resampled_clouds():
+    """Clouds the env resampled repeat points: the distinct points read back through the
+    layout give the cloud, and the Chamfer distance equals a brute force over every copy."""
+    g = torch.Generator().manual_seed(2)
+    base = torch.randn(2, 40, 3, generator=g)
+    a = base[:, torch.randint(0, 40, (300,), generator=g)]
+    b = base[:, torch.randint(0, 20, (120,), generator=g)] + 0.1
+    a_mask = torch.rand(2, 300, generator=g) < 0.7
+    b_mask = torch.rand(2, 120, generator=g) < 0.5
+    b_mask[1] = False  # an empty set: inf
+    points, layout = ops.distinct_points(a[0], a_mask[0])
+    assert len(points) == len(torch.unique(a[0][a_mask[0]], dim=0))
+    assert torch.equal(points[layout[a_mask[0]]], a[0][a_mask[0]])
+    assert (layout[~a_mask[0]] == len(points)).all()
+    got = ops.chamfer_distance(a, a_mask, b, b_mask)
+    pa, pb = a[0][a_mask[0]].double(), b[0][b_mask[0]].double()
+    d = torch.cdist(pa, pb)
+    want = 0.5 * (d.min(1).values.mean() + d.min(0).values.mean())
+    assert got[0].item() == pytest.approx(want.item(), rel=1e-5) and torch.isinf(got[1])
+    assert torch.equal(ops.chamfer_distance(b, b_mask, a, a_mask), got)

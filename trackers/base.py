@@ -380,14 +380,20 @@ class Tracker(nn.Module):
         b = batch[self.point_keys[0]].shape[0]
         if b == 0:
             return np.zeros((0, 4), dtype=np.float32)
-        keep = decision.keeps_box(self, batch, self.inference)
+        inference = self.inference
+        observed = None  # what the still-target test and the re-ranking share
+        if inference.hold_chamfer_m > 0 or inference.rerank_top_k > 0:
+            observed = decision.scenes(self, batch)
+        keep = decision.keeps_box(self, batch, inference, observed)
         action = torch.zeros(b, 4, device=self.device)
         if not keep.all():  # the network runs on the observations it decides
             moving = ~keep
             decided = {k: v[moving] if _batched(v, b) else v for k, v in batch.items()}
+            if observed is not None:
+                observed = [observed[i] for i in moving.nonzero()[:, 0].tolist()]
             outputs = self.eval_forward(decided)
             action[moving] = decision.decide(
-                self, decided, outputs, self.inference, keep=keep[moving]
+                self, decided, outputs, inference, keep=keep[moving], observed=observed
             ).to(action.dtype)
         action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
         result = action.cpu().numpy().astype(np.float32)

@@ -8,12 +8,12 @@ decided here, by settings that act at inference only and are no part of the arch
   reference box (action 0) where the current points inside it (scaled 1.25) lie within
   ``hold_chamfer_m`` metres (symmetric Chamfer distance) of both template crops: the target
   has not moved against the sensor. Not in the papers: the matching head alone lets a parked
-  car's box slide along it (docs/notes, "Holding still targets");
+  car's box slide along it (docs/checkpoints.md, "Holding still targets");
 * the **re-ranking** (``rerank_top_k = K > 0``, :func:`choose_action`): of the reference box and
   the ``K`` best-scored proposals, the box whose crop lies nearest (symmetric Chamfer distance)
   to the first frame's crop, a proposal counting ``rerank_margin_m`` farther than it is: the
   network moves the box only where the move matches the target better. Not in the papers
-  either (docs/notes, "Re-ranking by the first crop");
+  either (docs/checkpoints.md, "Re-ranking by the first crop");
 * the **clip** to ``max_action`` (:func:`clip_action`).
 
 :func:`decide` is the one place these run, in this order: ``Tracker.act`` and the RL policy
@@ -22,14 +22,16 @@ layout (``template (B, 512, 3)`` as the first and the previous frame's crops, ``
 ``size``) and their ``proposals`` / ``scores``; a tracker without it (M2-Track) refuses a
 non-default :class:`InferenceConfig` (``Tracker.supports_inference``).
 
-Cost: every candidate's crop and Chamfer distance in one vectorised pass, the template's crops
-prepared once for all candidates, and copies of a point (the env's resampling repeats points)
-compared once (:func:`trackers.ops.chamfer_distance`); the distances are bit for bit those of one
-candidate at a time.
+Cost (issue 41): one observation at a time (as the eval forward; a row's decision does not
+depend on its batch), every candidate's crop and Chamfer distance in one vectorised pass, the
+first crop prepared once for all candidates, and copies of a point (the env's resampling
+repeats points) compared once (:func:`trackers.ops.distinct_points`); the distances are bit for
+bit those of :func:`trackers.ops.chamfer_distance` one candidate at a time.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from collections.abc import Mapping
@@ -50,10 +52,12 @@ __all__ = [
     "HOLD_MIN_POINTS",
     "INFERENCE_FIELDS",
     "InferenceConfig",
+    "Scene",
     "choose_action",
     "clip_action",
     "decide",
     "keeps_box",
+    "scenes",
     "split_inference",
     "template_crops",
 ]
@@ -171,8 +175,53 @@ def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
     return (points.abs() <= half).all(-1) & _above_ground(points, size)
 
 
+class Scene:
+    """One observation as the still-target test and the re-ranking read it: ``search (N, 3)``,
+    ``size (3,)`` and the template crops ``(2, 256, 3)`` (first, previous), with the point sets
+    both need computed once, when first asked (``act`` builds the scenes before the test and
+    hands the moving ones to the re-ranking after the network)."""
+
+    def __init__(self, search: torch.Tensor, size: torch.Tensor, crops: torch.Tensor) -> None:
+        self.search, self.size, self.crops = search.detach(), size, crops
+
+    @functools.cached_property
+    def real(self) -> torch.Tensor:
+        """``(N,)`` bool: the search's points (zero rows pad it, wherever a box moves them)."""
+        return (self.search != 0).any(-1)
+
+    @functools.cached_property
+    def points(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The search's distinct real points ``(U, 3)`` and their layout ``(N,)``
+        (:func:`trackers.ops.distinct_points`)."""
+        return ops.distinct_points(self.search, self.real)
+
+    @functools.cached_property
+    def crop_masks(self) -> torch.Tensor:
+        """``(2, 256)`` bool: the crops' points above the ground (the env cropped them)."""
+        return _above_ground(self.crops.reshape(1, -1, 3), self.size[None]).reshape(2, -1)
+
+    @functools.cached_property
+    def first(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first crop's distinct points ``(F, 3)`` and their layout ``(256,)``."""
+        return ops.distinct_points(self.crops[0], self.crop_masks[0])
+
+    @functools.cached_property
+    def previous(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The previous crop's distinct points ``(P, 3)`` and their layout ``(256,)``."""
+        return ops.distinct_points(self.crops[1], self.crop_masks[1])
+
+
+def scenes(tracker: Tracker, batch: Mapping[str, torch.Tensor]) -> list[Scene]:
+    """The :class:`Scene` of each observation of ``batch``."""
+    crops = template_crops(tracker, batch["template"])
+    return [Scene(*row) for row in zip(batch["search"], batch["size"], crops, strict=True)]
+
+
 def keeps_box(
-    tracker: Tracker, batch: Mapping[str, torch.Tensor], inference: InferenceConfig
+    tracker: Tracker,
+    batch: Mapping[str, torch.Tensor],
+    inference: InferenceConfig,
+    observed: list[Scene] | None = None,
 ) -> torch.Tensor:
     """``(B,)`` True where the tracker keeps the reference box (action 0) without running the
     network: its empty observations (``tracker.empty_observations``) and, with
@@ -181,28 +230,38 @@ def keeps_box(
     (:func:`trackers.ops.chamfer_distance`) of both template crops, the previous frame's (it has
     not moved) and the first frame's (the box is still on the target, not on background it lost
     it to). Points less than :data:`HOLD_GROUND_CLEARANCE_M` above the box's bottom are left
-    out, and a crop of fewer than :data:`HOLD_MIN_POINTS` points decides nothing."""
+    out, and a crop of fewer than :data:`HOLD_MIN_POINTS` points decides nothing. ``observed``:
+    the batch's :func:`scenes`, if built already."""
     keep = tracker.empty_observations(batch)
     if inference.hold_chamfer_m <= 0:
         return keep
-    crops = template_crops(tracker, batch["template"])  # (B, 2, 256, 3)
-    size = batch["size"]
-    points, layout = _distinct_search(batch["search"])
-    in_box = _crop_mask(points, size).gather(1, layout)  # (B, N): the reference box's crop
-    masks = _above_ground(crops, size)  # (B, 2, 256): the env cropped them
-    distance = ops.chamfer_distance(crops, masks, points, in_box, b_copy=layout)  # (B, 2)
-    still = (distance < inference.hold_chamfer_m) & (masks.sum(-1) >= HOLD_MIN_POINTS)
-    return keep | (still.all(1) & (in_box.sum(1) >= HOLD_MIN_POINTS))
+    observed = scenes(tracker, batch) if observed is None else observed
+    return keep | torch.stack([_still(scene, inference.hold_chamfer_m) for scene in observed])
 
 
-def _distinct_search(search: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The distinct non-padding points of ``search (B, N, 3)``: ``(B, U + 1, 3)`` (the last,
-    and the padding of rows with fewer, are zeros: out of every crop) and the layout ``(B, N)``
-    that reads them back (:func:`trackers.ops.distinct_points`)."""
-    n = search.shape[1]
-    index, layout = ops.distinct_points(search, (search != 0).any(-1))
-    points = ops.gather(search, index.clamp(max=n - 1))
-    return torch.where((index < n)[..., None], points, 0.0), layout
+def _still(scene: Scene, hold_m: float) -> torch.Tensor:
+    """The still-target test of one observation -> a bool scalar: the reference box's crop
+    against both template crops, in one pass."""
+    points, layout = scene.points
+    masks = scene.crop_masks
+    if not len(points):  # an empty search
+        return torch.zeros((), dtype=torch.bool, device=points.device)
+    in_crop = _crop_mask(points[None], scene.size[None])  # (1, U): the reference box's crop
+    in_box = in_crop[0].gather(0, layout.clamp(max=len(points) - 1)) & scene.real
+    enough = (in_box.sum() >= HOLD_MIN_POINTS) & (masks.sum(1) >= HOLD_MIN_POINTS).all()
+    if not bool(enough):
+        return enough
+    (first, first_layout), (previous, previous_layout) = scene.first, scene.previous
+    crop_points = torch.cat([first, previous])  # the two crops as two sets of one cloud
+    held = torch.arange(len(crop_points), device=first.device) < len(first)
+    held = torch.stack([held, ~held])
+    crop_layout = torch.stack([first_layout, previous_layout + len(first)])
+    cropped = in_crop[0].nonzero()[:, 0]
+    crop_near, near = ops.nearest_distances(crop_points.expand(2, -1, -1), held, points[cropped])
+    search_near = near.new_zeros(2, len(points)).index_copy_(1, cropped, near)
+    crop_to_search = ops.layout_mean(crop_near, crop_layout, masks)
+    search_to_crop = ops.layout_mean(search_near, layout, in_box.expand(2, -1))
+    return (0.5 * (crop_to_search + search_to_crop) < hold_m).all()
 
 
 def choose_action(
@@ -211,6 +270,7 @@ def choose_action(
     outputs: dict[str, torch.Tensor],
     inference: InferenceConfig,
     max_action: Any,
+    observed: list[Scene] | None = None,
 ) -> torch.Tensor:
     """``tracker.best_action(outputs)``, or with ``inference.rerank_top_k = K > 0`` the
     re-ranked action ``(B, 4)``: of the reference box (action 0) and the ``K`` best-scored
@@ -220,7 +280,7 @@ def choose_action(
     earlier, the reference box first). A candidate whose crop has fewer than
     :data:`HOLD_MIN_POINTS` points is out; where the first crop has fewer, or no candidate is
     left, or a proposal is not finite, the best action stands. Differentiable in the chosen
-    proposal (not in the choice)."""
+    proposal (not in the choice). ``observed``: the batch's :func:`scenes`, if built already."""
     best = tracker.best_action(outputs)
     k = min(inference.rerank_top_k, outputs["scores"].shape[1])
     if k == 0:
@@ -231,28 +291,45 @@ def choose_action(
     candidates = torch.cat(  # (B, 1 + K, 4): the reference box first
         [torch.zeros_like(best)[:, None], clip_action(proposals, max_action)], dim=1
     )
-    first = template_crops(tracker, batch["template"])[:, 0]
-    size = batch["size"]
+    observed = scenes(tracker, batch) if observed is None else observed
     zeros = torch.zeros_like(candidates[..., :3])
     boxes = torch.cat([candidates[..., :3], zeros, candidates[..., 3:]], dim=-1).detach()
-    points, layout = _distinct_search(batch["search"].detach())  # (B, U + 1, 3), (B, N)
-    # the distinct search points in each candidate box's frame, (B, 1 + K, U + 1, 3): copies
-    # stay copies in every frame; the padding (zeros before moving) stays out of every crop
-    in_frames = world_to_box_torch(points[:, None], boxes)
-    valid = (points != 0).any(-1)[:, None]
-    in_crop = _crop_mask(in_frames, size) & valid
-    in_box = in_crop.gather(2, layout[:, None].expand(-1, k + 1, -1))  # (B, 1 + K, N)
-    first_mask = _above_ground(first, size)
-    distance = ops.chamfer_distance(in_frames, in_box, first, first_mask, a_copy=layout)
-    distance = torch.where(in_box.sum(-1) >= HOLD_MIN_POINTS, distance, math.inf)
+    distance = torch.stack([_crop_distances(*row) for row in zip(observed, boxes, strict=True)])
     distance[:, 1:] += inference.rerank_margin_m
+    first_points = torch.stack([scene.crop_masks[0].sum() for scene in observed])
     decides = (
-        (first_mask.sum(1) >= HOLD_MIN_POINTS)
+        (first_points >= HOLD_MIN_POINTS)
         & torch.isfinite(distance).any(1)
         & torch.isfinite(proposals).all(-1).all(-1)
     )
     chosen = candidates[torch.arange(b, device=top.device), distance.argmin(1)]
     return torch.where(decides[:, None], chosen, best)
+
+
+def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
+    """The Chamfer distance of each candidate box's crop of one observation's search to its
+    first crop, ``inf`` for a crop of fewer than :data:`HOLD_MIN_POINTS` points: boxes ``(C,
+    7)`` -> ``(C,)``. The search's distinct points (copies stay copies in every frame) in every
+    candidate's frame, one pass for all."""
+    inf = torch.full((len(boxes),), math.inf, dtype=scene.search.dtype, device=boxes.device)
+    first_mask = scene.crop_masks[0]
+    if not (bool(first_mask.any()) and bool(scene.real.any())):
+        return inf
+    (points, layout), (first, first_layout) = scene.points, scene.first
+    in_frames = world_to_box_torch(points[None], boxes)  # (C, U, 3)
+    in_crop = _crop_mask(in_frames, scene.size[None].expand(len(boxes), 3))  # (C, U)
+    # only the points some crop holds meet the first crop's (the rest of the search is far)
+    cropped = in_crop.any(0).nonzero()[:, 0]
+    if not len(cropped):
+        return inf
+    near, first_near = ops.nearest_distances(in_frames[:, cropped], in_crop[:, cropped], first)
+    crop_near = near.new_zeros(in_crop.shape).index_copy_(1, cropped, near)
+    in_box = in_crop.gather(1, layout.clamp(max=len(points) - 1).expand(len(boxes), -1))
+    in_box &= scene.real
+    crop_to_first = ops.layout_mean(crop_near, layout, in_box)
+    first_to_crop = ops.layout_mean(first_near, first_layout, first_mask.expand(len(boxes), -1))
+    distance = 0.5 * (crop_to_first + first_to_crop)
+    return torch.where(in_box.sum(1) >= HOLD_MIN_POINTS, distance, inf)
 
 
 def decide(
@@ -264,6 +341,7 @@ def decide(
     action: torch.Tensor | None = None,
     max_action: Any = None,
     keep: torch.Tensor | None = None,
+    observed: list[Scene] | None = None,
 ) -> torch.Tensor:
     """The action ``(B, 4)`` (env units: metres, radians) the tracker executes on ``batch``
     from its forward's ``outputs``: zero where it keeps the box (:func:`keeps_box`; ``keep
@@ -271,12 +349,15 @@ def decide(
     the network there); elsewhere ``action (B, 4)`` if given (the RL policy's soft mode), else
     :func:`choose_action`; then the one clip to ``max_action`` (default
     ``tracker.max_action``). A non-finite action comes out NaN (the caller decides: ``act``
-    moves nowhere, the RL policy raises). Differentiable in the chosen action."""
+    moves nowhere, the RL policy raises). ``observed``: the batch's :func:`scenes`, if built
+    already. Differentiable in the chosen action."""
     max_action = tracker.max_action if max_action is None else max_action
+    if observed is None and (inference.hold_chamfer_m > 0 or inference.rerank_top_k > 0):
+        observed = scenes(tracker, batch)  # what the test and the re-ranking share
     if keep is None:
-        keep = keeps_box(tracker, batch, inference)
+        keep = keeps_box(tracker, batch, inference, observed)
     if action is None:
-        action = choose_action(tracker, batch, outputs, inference, max_action)
+        action = choose_action(tracker, batch, outputs, inference, max_action, observed)
     action = torch.where(torch.isfinite(action), action, math.nan)
     action = torch.where(keep[:, None], torch.zeros_like(action), action)
     return clip_action(action, max_action)

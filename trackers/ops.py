@@ -32,6 +32,8 @@ __all__ = [
     "hash_order",
     "hash_orders",
     "knn",
+    "layout_mean",
+    "nearest_distances",
     "pairwise_sqdist",
     "random_order",
 ]
@@ -352,132 +354,68 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
 
 
 def chamfer_distance(
-    a: torch.Tensor,
-    a_mask: torch.Tensor,
-    b: torch.Tensor,
-    b_mask: torch.Tensor,
-    *,
-    a_copy: torch.Tensor | None = None,
-    b_copy: torch.Tensor | None = None,
+    a: torch.Tensor, a_mask: torch.Tensor, b: torch.Tensor, b_mask: torch.Tensor
 ) -> torch.Tensor:
     """Symmetric Chamfer distance (the units of the points) between the masked point sets
-    ``a (B, N, C)`` / ``a_mask (B, N)`` and ``b (B, M, C)`` / ``b_mask (B, M)`` (bool) -> ``(B,)``:
+    ``a (B, N, 3)`` / ``a_mask (B, N)`` and ``b (B, M, 3)`` / ``b_mask (B, M)`` (bool) -> ``(B,)``:
     the mean over ``a``'s points of the distance to the nearest point of ``b``, and the same
     from ``b`` to ``a``, averaged (a repeated point counts in its set's mean as often as it
     appears). ``inf`` where a set is empty. Symmetric bit for bit.
 
-    ``a (B, K, N, C)`` / ``a_mask (B, K, N)``: ``K`` sets per row against the row's one ``b``
-    -> ``(B, K)``, each bit for bit the distance of that set alone; ``b`` is prepared once.
-
-    Copies of a point (the env's resampling repeats points) are compared once. ``a_copy``
-    ``(B, L)`` (shared by the ``K`` sets: one cloud seen in ``K`` frames) or ``(B, K, L)`` lays
-    a set out: its ``i``-th point is ``a[..., a_copy[i], :]``, and ``a_mask (B, [K,] L)`` is
-    over that layout; so ``a`` may hold only the distinct points (:func:`distinct_points`).
-    Without it a set is its own layout, its copies found by :func:`first_copy`. The same for
-    ``b_copy (B, L_b)``. The pairs are formed among the masked points' distinct points only
-    (each row's moved first, the rows cut to the batch's largest count); the nearest distances
-    go back to every position of the row's own layout before the means, so a row's value is bit
-    for bit the same whatever else is in the batch and however its points are laid out.
+    One row at a time, from :func:`distinct_points` (copies compared once),
+    :func:`nearest_distances` and :func:`layout_mean`: a row's value is bit for bit the same
+    whatever else is in the batch.
     """
-    many = a.dim() == 4
-    if not many:
-        a, a_mask = a[:, None], a_mask[:, None]
-    bsz, k, n, c = a.shape
-    if a_copy is None:
-        a_copy = _copies(a.reshape(bsz * k, n, c)).reshape(bsz, k, n)
-    elif a_copy.dim() == 2:  # shared by the K sets
-        a_copy = a_copy[:, None]
-    length = a_mask.shape[-1]
-    a_copy = a_copy.expand(bsz, k, length).reshape(bsz * k, length)
-    a_mask = a_mask.reshape(bsz * k, length)
-    b_copy = _copies(b) if b_copy is None else b_copy
-    # the distinct points a masked position holds
-    a_order, a_kept = _masked_first(_needed(a_copy, a_mask, n))
-    b_order, b_kept = _masked_first(_needed(b_copy, b_mask, b.shape[1]))
-    a_points = gather(a.reshape(bsz * k, n, c), a_order.clamp(max=n - 1))  # (B K, N', C)
-    b_points = gather(b, b_order.clamp(max=b.shape[1] - 1))
-    sq = pairwise_sqdist(a_points.reshape(bsz, -1, c), b_points)  # (B, K N', M')
-    # inf on the pairs with a masked-out point, by adding (B, K N', 1) and (B, 1, M') penalties
-    # of 0 / inf: exact (x + 0 = x) and cheaper than a (B, K N', M') mask
-    inf = torch.tensor(math.inf, dtype=sq.dtype, device=sq.device)
-    pen_a = torch.where(a_kept, 0.0, inf).to(sq.dtype).reshape(bsz, -1, 1)
-    pen_b = torch.where(b_kept, 0.0, inf).to(sq.dtype)[:, None, :]
-    if sq.requires_grad:
-        sq = sq + pen_a + pen_b
-    else:
-        sq.add_(pen_a).add_(pen_b)
-    sq = sq.reshape(bsz, k, a_order.shape[1], b_order.shape[1])
-    a_near = sq.amin(dim=3).reshape(bsz * k, -1)  # (B K, N')
-    a_to_b = _mean_nearest(a_near, a_kept, a_order, a_copy, a_mask, n)
-    b_near = sq.amin(dim=2).reshape(bsz * k, -1)  # (B K, M')
-    rows = torch.arange(bsz, device=b.device).repeat_interleave(k)
-    b_mask = b_mask[rows]
-    b_to_a = _mean_nearest(b_near, b_kept[rows], b_order[rows], b_copy[rows], b_mask, b.shape[1])
-    out = 0.5 * (a_to_b + b_to_a)
-    out = torch.where(a_mask.any(1) & b_mask.any(1), out, math.inf).reshape(bsz, k)
-    return out if many else out[:, 0]
+    out = []
+    for i in range(a.shape[0]):
+        pa, ia = distinct_points(a[i], a_mask[i])
+        pb, ib = distinct_points(b[i], b_mask[i])
+        if not (len(pa) and len(pb)):
+            out.append(torch.full((1,), math.inf, dtype=a.dtype, device=a.device))
+            continue
+        a_near, b_near = nearest_distances(pa[None], None, pb)
+        a_to_b = layout_mean(a_near, ia, a_mask[i : i + 1])
+        out.append(0.5 * (a_to_b + layout_mean(b_near, ib, b_mask[i : i + 1])))
+    return torch.cat(out) if out else a.new_zeros(0)
 
 
-def distinct_points(xyz: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The distinct coordinates (bit for bit, :func:`first_copy`) among the masked points of
-    ``xyz (B, N, 3)``: ``index (B, U + 1)`` into ``N`` of one point each, padded with ``N``
-    (always in the last column), and ``layout (B, N)`` in ``[0, U]``: the column of ``index``
-    holding each masked point's coordinates (``U`` for the others). Work on the ``U`` distinct
-    points, read back through ``layout`` (``chamfer_distance``'s ``a_copy``): exact, and the
-    env's resampled clouds repeat their points many times."""
-    b, n = mask.shape
-    copy = first_copy(xyz)
-    order, _ = _masked_first(_needed(copy, mask, n))
-    index = torch.cat([order, torch.full((b, 1), n, dtype=order.dtype, device=order.device)], 1)
-    u = index.shape[1] - 1
-    column = torch.full((b, n + 1), u, dtype=index.dtype, device=index.device)
-    column.scatter_(1, index, torch.arange(u + 1, device=index.device).expand(b, u + 1))
-    return index, torch.where(mask, column.gather(1, copy), u)
+def distinct_points(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The distinct masked points of one cloud ``points (L, 3)`` / ``mask (L,)`` (float32 copies
+    bit for bit equal; the env's resampling repeats points many times) -> ``(U, 3)`` and the
+    layout ``(L,)`` int64: the row of each masked point's copy (``U`` for the others). One sort
+    by the (x, y) bits; copies a point of other z separates count twice, which is exact too."""
+    bits = points.contiguous().view(torch.int32)
+    key = (bits[:, 0].long() << 32) | (bits[:, 1].long() & _MASK32)
+    key = torch.where(mask, key, torch.iinfo(torch.int64).max)  # finite points sort first
+    order = torch.argsort(key)
+    ordered = bits[order]
+    new = torch.ones_like(mask)
+    new[1:] = (ordered[1:] != ordered[:-1]).any(1)
+    new &= mask[order]
+    row = new.cumsum(0) - 1
+    layout = torch.empty_like(order).scatter_(0, order, torch.where(mask[order], row, len(mask)))
+    unique = points[order[new]]
+    return unique, torch.where(mask, layout, len(unique))
 
 
-def _copies(points: torch.Tensor) -> torch.Tensor:
-    """:func:`first_copy` of float32 points ``(B, N, C)`` with ``C = 3``; each point its own
-    copy otherwise."""
-    if points.dtype == torch.float32 and points.shape[-1] == 3:
-        return first_copy(points)
-    b, n = points.shape[:2]
-    return torch.arange(n, device=points.device).expand(b, n)
+def nearest_distances(
+    a: torch.Tensor, a_in: torch.Tensor | None, b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest-point distances between ``K`` sets of points ``a (K, U, 3)`` (``a_in (K, U)``
+    bool: which points each set holds; ``None``: all) and the set ``b (V, 3)``: ``(K, U)`` from
+    each of ``a``'s points to ``b`` and ``(K, V)`` from ``b``'s points to each set (``inf``
+    for an empty set). One pairwise pass; exact to float rounding, the same on any device."""
+    k, u, c = a.shape
+    sq = pairwise_sqdist(a.reshape(1, k * u, c), b[None]).reshape(k, u, -1)  # (K, U, V)
+    if a_in is not None:  # a penalty of 0 / inf: exact (x + 0 = x)
+        sq.add_(torch.where(a_in, 0.0, math.inf).to(sq.dtype)[..., None])
+    return sq.amin(dim=2).sqrt(), sq.amin(dim=1).sqrt()
 
 
-def _needed(copy: torch.Tensor, mask: torch.Tensor, n: int) -> torch.Tensor:
-    """``(B, n)`` bool: the points of ``n`` that a masked position of the layout ``copy (B,
-    L)`` / ``mask (B, L)`` holds."""
-    need = torch.zeros((mask.shape[0], n), dtype=torch.uint8, device=mask.device)
-    return need.scatter_reduce_(1, copy, mask.to(torch.uint8), "amax").bool()
-
-
-def _mean_nearest(
-    nearest_sq: torch.Tensor,
-    kept: torch.Tensor,
-    order: torch.Tensor,
-    copy: torch.Tensor,
-    mask: torch.Tensor,
-    n: int,
-) -> torch.Tensor:
-    """The mean over each row's masked positions of the distance to the nearest point of the
-    other set: ``nearest_sq (R, N')`` of the points ``order (R, N')`` (of ``n``; ``kept``:
-    real), read back through the layout ``copy (R, L)`` / ``mask (R, L)`` for a sum over the
-    row's own layout that does not depend on the batch -> ``(R,)``."""
-    nearest = torch.where(kept, nearest_sq.sqrt(), 0.0)  # sqrt is monotonic: only N' roots
-    # a spare column n for the padding of ``order``
-    full = torch.zeros((nearest.shape[0], n + 1), dtype=nearest.dtype, device=nearest.device)
-    full = full.scatter(1, order, nearest).gather(1, copy)
+def layout_mean(near: torch.Tensor, layout: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The mean over a layout's masked positions ``mask (K, L)`` of their points' distances
+    ``near (K, U)`` (``layout (L,)``: each position's point, :func:`distinct_points`) -> ``(K,)``.
+    The sum runs over the whole ``(L,)`` layout, zeros at the unmasked positions, so it does
+    not depend on how the points were deduplicated or batched."""
+    full = near.gather(1, layout.clamp(max=near.shape[1] - 1).expand(near.shape[0], -1))
     return torch.where(mask, full, 0.0).sum(1) / mask.sum(1)
-
-
-def _masked_first(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """``(B, N')`` indices of each row's masked points first (in their order), the rows cut to
-    the largest masked count ``N'`` (at least 1) and padded with ``N`` (one past the end), and
-    ``(B, N')`` bool: which are masked. A prefix sum places them (no sort)."""
-    b, n = mask.shape
-    keep = max(int(mask.sum(1).max()) if mask.numel() else 0, 1)
-    slot = torch.where(mask, mask.cumsum(1) - 1, keep)  # the unmasked to a spare column
-    order = torch.full((b, keep + 1), n, dtype=torch.long, device=mask.device)
-    order.scatter_(1, slot, torch.arange(n, device=mask.device).expand(b, n))
-    order = order[:, :keep]
-    return order, order < n
