@@ -257,7 +257,9 @@ def _still(scene: Scene, hold_m: float) -> torch.Tensor:
     held = torch.stack([held, ~held])
     crop_layout = torch.stack([first_layout, previous_layout + len(first)])
     cropped = in_crop[0].nonzero()[:, 0]
-    crop_near, near = ops.nearest_distances(crop_points.expand(2, -1, -1), held, points[cropped])
+    crop_near, near = ops.nearest_distances(
+        crop_points.expand(2, -1, -1), held, points.index_select(0, cropped)
+    )
     search_near = near.new_zeros(2, len(points)).index_copy_(1, cropped, near)
     crop_to_search = ops.layout_mean(crop_near, crop_layout, masks)
     search_to_crop = ops.layout_mean(search_near, layout, in_box.expand(2, -1))
@@ -322,7 +324,9 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
     cropped = in_crop.any(0).nonzero()[:, 0]
     if not len(cropped):
         return inf
-    near, first_near = ops.nearest_distances(in_frames[:, cropped], in_crop[:, cropped], first)
+    near, first_near = ops.nearest_distances(
+        in_frames.index_select(1, cropped), in_crop.index_select(1, cropped), first
+    )
     crop_near = near.new_zeros(in_crop.shape).index_copy_(1, cropped, near)
     in_box = in_crop.gather(1, layout.clamp(max=len(points) - 1).expand(len(boxes), -1))
     in_box &= scene.real

@@ -388,13 +388,14 @@ def distinct_points(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Ten
     key = (bits[:, 0].long() << 32) | (bits[:, 1].long() & _MASK32)
     key = torch.where(mask, key, torch.iinfo(torch.int64).max)  # finite points sort first
     order = torch.argsort(key)
-    ordered = bits[order]
+    ordered = bits.index_select(0, order)
+    masked = mask.index_select(0, order)
     new = torch.ones_like(mask)
     new[1:] = (ordered[1:] != ordered[:-1]).any(1)
-    new &= mask[order]
+    new &= masked
     row = new.cumsum(0) - 1
-    layout = torch.empty_like(order).scatter_(0, order, torch.where(mask[order], row, len(mask)))
-    unique = points[order[new]]
+    layout = torch.empty_like(order).scatter_(0, order, torch.where(masked, row, len(mask)))
+    unique = points.index_select(0, order[new])
     return unique, torch.where(mask, layout, len(unique))
 
 
