@@ -1,5 +1,5 @@
-"""Benchmark the still-target test and the re-ranking (``MatchingConfig.hold_chamfer_m``,
-``rerank_top_k``) against the network.
+"""Benchmark the still-target test and the re-ranking (``InferenceConfig.hold_chamfer_m``,
+``rerank_top_k``: :mod:`trackers.decision`) against the network.
 
 Usage: ``python benchmarks/bench_hold.py [--tracker bat-kitti1-u] [--batch 8] [--threads 1]
 [--rerank-top-k 4]``.
@@ -31,6 +31,7 @@ import torch
 import trackers
 from envs.tracking_env import make_synthetic_env
 from trackers.base import prepare_observation
+from trackers.decision import InferenceConfig, choose_action, keeps_box
 
 
 def best_ms(fn: Callable[[], object], repeats: int) -> float:
@@ -65,20 +66,28 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     tracker = trackers.load(args.tracker)
-    hold = tracker.config.hold_chamfer_m
+    own = tracker.inference
+    hold, k = own.hold_chamfer_m, args.rerank_top_k
+    rerank = InferenceConfig(hold_chamfer_m=hold, rerank_top_k=k)
     batch = observations(args.batch)
     prepared = prepare_observation(batch)[0]
-    held = int(tracker.keeps_box(prepared).sum())
-    test_ms = best_ms(lambda: tracker.keeps_box(prepared), args.repeats)
-    tracker.config.rerank_top_k = 0
-    held_ms = best_ms(lambda: tracker.act(batch), args.repeats)
-    tracker.config.rerank_top_k = k = args.rerank_top_k
+    held = int(keeps_box(tracker, prepared, own).sum())
+    test_ms = best_ms(lambda: keeps_box(tracker, prepared, own), args.repeats)
+
+    def act_ms(inference: InferenceConfig) -> float:
+        tracker.inference = inference
+        return best_ms(lambda: tracker.act(batch), args.repeats)
+
+    held_ms = act_ms(InferenceConfig(hold_chamfer_m=hold))
     with torch.no_grad():
         outputs = tracker.eval_forward(prepared)
-    rerank_ms = best_ms(lambda: tracker.choose_action(prepared, outputs), args.repeats)
-    both_ms = best_ms(lambda: tracker.act(batch), args.repeats)
-    tracker.config.hold_chamfer_m, tracker.config.rerank_top_k = 0.0, 0
-    plain_ms = best_ms(lambda: tracker.act(batch), args.repeats)
+    max_action = tracker.max_action
+    rerank_ms = best_ms(
+        lambda: choose_action(tracker, prepared, outputs, rerank, max_action), args.repeats
+    )
+    both_ms = act_ms(rerank)
+    plain_ms = act_ms(InferenceConfig())
+    tracker.inference = own
     b = args.batch
     print(f"{args.tracker}, B = {b}, {args.threads} thread(s), load {os.getloadavg()[0]:.2f}")
     rows = [

@@ -187,10 +187,15 @@ def test_init_weights_starts_from_a_checkpoint_and_checks_it(tmp_path):
     assert relabelled.config.head.vote_channels == source.config.head.vote_channels  # merged
     for k, v in source.state_dict().items():
         assert torch.equal(relabelled.state_dict()[k], v), k
-    # nor do the inference-only still-target test and re-ranking
-    inference = {"hold_chamfer_m": 0.15, "rerank_top_k": 4, "rerank_margin_m": 0.02}
-    held = trainer(path, tracker_config=inference).model
-    assert (held.config.hold_chamfer_m, held.config.rerank_top_k) == (0.15, 4)
+    # a file that holds and re-ranks (tracker.inference, beside the config) starts a run too
+    from trackers.decision import InferenceConfig
+
+    source.inference = InferenceConfig(hold_chamfer_m=0.15, rerank_top_k=4)
+    held = trainer(trackers.save(source, tmp_path / "held.safetensors")).model
+    for k, v in source.state_dict().items():
+        assert torch.equal(held.state_dict()[k], v), k
+    with pytest.raises(ValueError, match="hold_chamfer_m.*inference settings"):
+        trainer(path, tracker_config={"hold_chamfer_m": 0.15})
     with pytest.raises(TrainingError, match="another tracker config.*cluster_radius"):
         trainer(path, tracker_config={"head": {"cluster_radius": 0.5}})
     with pytest.raises(TrainingError, match="no such checkpoint"):

@@ -14,6 +14,7 @@ from stable_baselines3 import PPO
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
 from trackers.base import prepare_observation
+from trackers.decision import InferenceConfig, keeps_box
 from training.rl import GroupPPO, ScaledAdam, SelfCriticalReward, TrackerPolicy
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -71,7 +72,7 @@ def test_predict_equals_rescaled_tracker_act_at_init(data, name):
 
 def test_predict_keeps_the_box_where_the_tracker_holds_it(data):
     base = trackers.load("bat-kitti1-u")
-    base.config.hold_chamfer_m = 100.0  # every observation with enough points counts as still
+    base.inference = InferenceConfig(hold_chamfer_m=100.0)  # enough points: still
     model = ppo(data, base)
     obs = observations(base, data)
     assert all((base.act(o) == 0).all() for o in obs)
@@ -80,13 +81,11 @@ def test_predict_keeps_the_box_where_the_tracker_holds_it(data):
 
 def test_predict_executes_the_re_ranked_box(data):
     base = trackers.load("bat-kitti1-u")
-    base.config.hold_chamfer_m = 0.0
-    base.config.rerank_top_k = 8
+    base.inference = InferenceConfig(rerank_top_k=8)
     model = ppo(data, base)
     obs = observations(base, data)
-    plain = trackers.load("bat-kitti1-u")
-    plain.config.hold_chamfer_m = 0.0
-    plain.config.rerank_top_k = 0  # the shipped file re-ranks (session 25)
+    # the shipped file re-ranks (session 25)
+    plain = trackers.load("bat-kitti1-u", inference=InferenceConfig())
     # the re-ranking changes some of these actions, and predict follows it
     assert any(not np.array_equal(base.act(o), plain.act(o)) for o in obs)
     assert_predict_equals_act(model, base, obs)
@@ -226,7 +225,7 @@ def test_soft_mode_mean_is_the_score_weighted_proposal_mean(data):
         w = torch.softmax(out["scores"] / 0.5, dim=1).numpy()
         expected = (w[..., None] * out["proposals"].numpy()).sum(1)
         mean, _ = policy.mean_and_value({k: torch.as_tensor(v) for k, v in obs.items()})
-        held = base.keeps_box(prepare_observation(obs)[0]).numpy()  # the shipped file holds
+        held = keeps_box(base, prepare_observation(obs)[0], base.inference).numpy()  # it holds
     expected = np.where(held[:, None], 0.0, expected)
     expected = np.clip(expected, -base.max_action, base.max_action) / base.max_action
     np.testing.assert_allclose(mean.numpy(), expected, atol=1e-5)
@@ -443,8 +442,8 @@ def test_group_ppo_moves_the_mean_toward_the_better_samples(data):
     """With rewards that grow with a sample's dx, one update raises the mean dx on every state
     of the rollout (the sign of the group-relative gradient; the soft mean, because a best
     proposal can switch under any step)."""
-    base = trackers.load("p2b-kitti1-u")
-    base.config.hold_chamfer_m = 0.0  # held states keep mean 0: every state must be able to move
+    # held states keep mean 0: every state must be able to move
+    base = trackers.load("p2b-kitti1-u", inference={"hold_chamfer_m": 0.0})
     model = group_ppo(
         data, base, group_size=8, learning_rate=1e-3,
         policy_kwargs={"tracker_lr_scale": 1.0, "action_mode": "soft"},

@@ -18,12 +18,13 @@
 * ``loss(outputs, targets) -> dict`` of per-sample ``(B,)`` terms and ``total`` (weighted sum);
 * :meth:`Tracker.features`: the ``(B, M, D)`` features the decorrelation weighting (-W) pools;
 * ``act(obs) -> np.ndarray``: one observation -> ``(4,)``, a batch -> ``(B, 4)`` (``(0, 4)`` for
-  an empty batch); the best-scored proposal, clipped to ``self.max_action`` (default the env's
+  an empty batch); the action :func:`trackers.decision.decide` takes under ``tracker.inference``
+  (an :class:`~trackers.decision.InferenceConfig`: the still-target test and the re-ranking, off
+  by default: the best-scored proposal), clipped to ``self.max_action`` (default the env's
   ``a_max = (5, 5, 3, pi)``); no move for an all-zero (empty) template or search; eval-mode
   ``no_grad`` forwards (the module's train/eval mode is restored afterwards). It is built from
   hooks a tracker of another kind overrides (M2-Track does): :meth:`Tracker.prepare`,
-  :meth:`Tracker.best_action`, :meth:`Tracker.empty_observations`, :meth:`Tracker.keeps_box`
-  (where the box stays and the network does not run); RL fine-tuning
+  :meth:`Tracker.best_action`, :meth:`Tracker.empty_observations`; RL fine-tuning
   (:mod:`training.rl`) also reads :meth:`Tracker.summary_features` and ``train_parts``.
 
 :class:`MatchingTracker` outputs ``Z (B, M_S, D)`` the fused search features, ``proposals``,
@@ -50,7 +51,6 @@ computation with BatchNorm running statistics); both are the same function to fl
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
@@ -59,11 +59,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from envs.geometry import world_to_box_torch
-from envs.spec import DEFAULT_MAX_ACTION, OBS_SHAPES, TEMPLATE_SCALE
-from trackers import ops
+from envs.spec import DEFAULT_MAX_ACTION, OBS_SHAPES
+from trackers import decision, ops
 from trackers.backbone import Backbone, BackboneConfig
 from trackers.config import config_from_dict, config_to_dict
+from trackers.decision import INFERENCE_FIELDS, InferenceConfig
 from trackers.head import HeadConfig, VotingHead, head_losses
 from trackers.layers import set_fast_eval
 
@@ -102,60 +102,13 @@ class TrackerConfig:
         self.loss_weights = {str(k): float(v) for k, v in self.loss_weights.items()}
 
 
-#: Fewest points in a crop for the still-target test to decide anything.
-HOLD_MIN_POINTS = 5
-#: The still-target test and the re-ranking leave out points this close above the box's bottom
-#: (m): the ground.
-HOLD_GROUND_CLEARANCE_M = 0.2
-
-
-#: The :class:`MatchingConfig` fields that act at inference only (the weights do not depend on
-#: them).
-INFERENCE_ONLY_FIELDS = ("hold_chamfer_m", "rerank_top_k", "rerank_margin_m")
-
-
 @dataclass
 class MatchingConfig(TrackerConfig):
-    """Hyper-parameters of a matching tracker's backbone and voting head, and of its
-    still-target test: with ``hold_chamfer_m > 0`` the tracker keeps the reference box (action
-    0) where the current points inside it (scaled 1.25) lie within ``hold_chamfer_m`` metres
-    (symmetric Chamfer distance) of the template's crops (:meth:`MatchingTracker.keeps_box`):
-    the target has not moved against the sensor. Not in the papers: the matching head alone
-    lets a parked car's box slide along it (docs/checkpoints.md, "Holding still targets").
-    0 (default) is off.
-
-    And of its re-ranking: with ``rerank_top_k > 0`` the executed box is, of the reference box
-    and the ``rerank_top_k`` best-scored proposals, the one whose crop (scaled 1.25) lies
-    nearest (symmetric Chamfer distance) to the first frame's crop, a proposal counting
-    ``rerank_margin_m`` farther than it is (:meth:`MatchingTracker.choose_action`): the network
-    moves the box only where the move matches the target better. Not in the papers either
-    (docs/checkpoints.md, "Re-ranking by the first crop"). 0 (default) is off."""
+    """Hyper-parameters of a matching tracker's backbone and voting head (how it decides on
+    their outputs is ``tracker.inference``: :mod:`trackers.decision`)."""
 
     backbone: BackboneConfig = field(default_factory=BackboneConfig)
     head: HeadConfig = field(default_factory=HeadConfig)
-    hold_chamfer_m: float = 0.0
-    rerank_top_k: int = 0
-    rerank_margin_m: float = 0.0
-
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        if not (math.isfinite(self.hold_chamfer_m) and self.hold_chamfer_m >= 0):
-            raise ValueError(
-                f"hold_chamfer_m = {self.hold_chamfer_m!r}: expected a finite distance >= 0 "
-                f"(metres; 0 turns the still-target test off)"
-            )
-        if isinstance(self.rerank_top_k, bool) or not (
-            isinstance(self.rerank_top_k, int) and self.rerank_top_k >= 0
-        ):
-            raise ValueError(
-                f"rerank_top_k = {self.rerank_top_k!r}: expected an integer >= 0 (proposals; "
-                f"0 turns the re-ranking off)"
-            )
-        if not (math.isfinite(self.rerank_margin_m) and self.rerank_margin_m >= 0):
-            raise ValueError(
-                f"rerank_margin_m = {self.rerank_margin_m!r}: expected a finite distance >= 0 "
-                f"(metres)"
-            )
 
 
 def prepare_observation(
@@ -251,6 +204,10 @@ class Tracker(nn.Module):
     #: RL fine-tuning's ``train_parts`` (:mod:`training.rl`) -> the child modules each trains;
     #: ``"all"`` (every child) is implied
     train_parts: ClassVar[dict[str, tuple[str, ...]]] = {}
+    #: whether :mod:`trackers.decision`'s still-target test and re-ranking fit this tracker's
+    #: observations and outputs (a matching tracker's); if not, only the default
+    #: :class:`~trackers.decision.InferenceConfig` is accepted
+    supports_inference: ClassVar[bool] = False
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__()
@@ -259,6 +216,13 @@ class Tracker(nn.Module):
         if isinstance(config, self.config_class):
             config = config_to_dict(config)
         config = {**config, **overrides}
+        misplaced = sorted(set(config) & set(INFERENCE_FIELDS))
+        if misplaced:
+            raise ValueError(
+                f"{self.name} config: {misplaced} are inference settings, not part of the "
+                f"architecture: set tracker.inference = trackers.decision.InferenceConfig(...) "
+                f"or pass trackers.load(..., inference=...)"
+            )
         cfg = config_from_dict(self.config_class, config, where=f"{self.name} config")
         unknown = sorted(set(cfg.loss_weights) - set(self.default_loss_weights))
         if unknown:
@@ -281,6 +245,29 @@ class Tracker(nn.Module):
         #: ``trackers.registry.ENV_OPTION_KEYS``; ``{}``: the env's defaults), set from the
         #: training config and carried by ``trackers.save`` / ``trackers.load``
         self.env_options: dict[str, Any] = {}
+        self._inference = InferenceConfig()
+
+    @property
+    def inference(self) -> InferenceConfig:
+        """How :meth:`act` (and the RL policy) decide on the network's outputs
+        (:mod:`trackers.decision`); saved in the checkpoint's metadata, restored by
+        ``trackers.load`` (which may override it)."""
+        return self._inference
+
+    @inference.setter
+    def inference(self, config: InferenceConfig) -> None:
+        if not isinstance(config, InferenceConfig):
+            raise TypeError(
+                f"{self.name}: tracker.inference must be a trackers.decision.InferenceConfig, "
+                f"got {type(config).__name__}"
+            )
+        if config != InferenceConfig() and not self.supports_inference:
+            raise ValueError(
+                f"{self.name}: the still-target test and the re-ranking need a matching "
+                f"tracker's observations and proposals; this tracker takes only the default "
+                f"InferenceConfig(), got {config}"
+            )
+        self._inference = config
 
     @property
     def fast_eval(self) -> bool:
@@ -366,23 +353,6 @@ class Tracker(nn.Module):
         search): the tracker does not move there."""
         return (batch["template"] == 0).flatten(1).all(1) | (batch["search"] == 0).flatten(1).all(1)
 
-    def keeps_box(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """``(B,)`` True where :meth:`act` keeps the reference box (action 0) without running
-        the network: by default the :meth:`empty_observations`."""
-        return self.empty_observations(batch)
-
-    def choose_action(
-        self, batch: Mapping[str, torch.Tensor], outputs: dict[str, torch.Tensor]
-    ) -> torch.Tensor:
-        """The action ``(B, 4)`` :meth:`act` executes (before clipping to ``max_action``) from
-        :meth:`forward`'s ``outputs`` on ``batch``: by default :meth:`best_action`."""
-        return self.best_action(outputs)
-
-    def clip_to_max_action(self, action: torch.Tensor) -> torch.Tensor:
-        """``action (..., 4)`` clipped to ``[-max_action, max_action]`` per component."""
-        a_max = torch.as_tensor(self.max_action, device=action.device, dtype=action.dtype)
-        return torch.maximum(torch.minimum(action, a_max), -a_max)
-
     def summary_features(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
         """One feature vector per sample ``(B, summary_channels)`` for heads that read the
         tracker's state (the RL critic): :meth:`features` ``(B, M, D)`` max- and mean-pooled
@@ -397,40 +367,35 @@ class Tracker(nn.Module):
 
     @torch.no_grad()
     def act(self, obs: Any) -> np.ndarray:
-        """:meth:`choose_action` as an action, 0 where :meth:`keeps_box`: one observation ->
-        ``(4,)``, a batch -> ``(B, 4)`` (an empty batch -> an empty ``(0, 4)`` array)."""
+        """The action :func:`trackers.decision.decide` takes under :attr:`inference` (0 where
+        the tracker keeps the box: the network runs only on the other observations; a
+        non-finite action: 0): one observation -> ``(4,)``, a batch -> ``(B, 4)`` (an empty
+        batch -> an empty ``(0, 4)`` array)."""
         batch, single = self.prepare(obs)
         b = batch[self.point_keys[0]].shape[0]
         if b == 0:
             return np.zeros((0, 4), dtype=np.float32)
-        keep = self.keeps_box(batch)
+        inference = self.inference
+        observed = None  # what the still-target test and the re-ranking share
+        if inference.hold_chamfer_m > 0 or inference.rerank_top_k > 0:
+            observed = decision.scenes(self, batch)
+        keep = decision.keeps_box(self, batch, inference, observed)
         action = torch.zeros(b, 4, device=self.device)
         if not keep.all():  # the network runs on the observations it decides
             moving = ~keep
             decided = {k: v[moving] if _batched(v, b) else v for k, v in batch.items()}
-            action[moving] = self.choose_action(decided, self.eval_forward(decided)).to(
-                action.dtype
-            )
-        action = self.clip_to_max_action(torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0))
+            if observed is not None:
+                observed = [observed[i] for i in moving.nonzero()[:, 0].tolist()]
+            outputs = self.eval_forward(decided)
+            action[moving] = decision.decide(
+                self, decided, outputs, inference, keep=keep[moving], observed=observed
+            ).to(action.dtype)
+        action = torch.nan_to_num(action, nan=0.0, posinf=0.0, neginf=0.0)
         result = action.cpu().numpy().astype(np.float32)
         return result[0] if single else result
 
     def extra_repr(self) -> str:
         return f"name={self.name!r}"
-
-
-def _above_ground(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
-    """``(B, N)`` bool: the points ``(B, N, 3)`` (box frame; zero rows are padding) at least
-    :data:`HOLD_GROUND_CLEARANCE_M` above the bottom of the box of ``size (B, 3)``."""
-    floor = -size[:, None, 2] / 2 + HOLD_GROUND_CLEARANCE_M
-    return (points != 0).any(-1) & (points[..., 2] > floor)
-
-
-def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
-    """``(B, N)`` bool: the points ``(B, N, 3)`` of :func:`_above_ground` inside the box scaled
-    :data:`TEMPLATE_SCALE` (the template's crop of them)."""
-    half = size[:, None, :] * (TEMPLATE_SCALE / 2)
-    return (points.abs() <= half).all(-1) & _above_ground(points, size)
 
 
 def _batched(value: Any, b: int) -> bool:
@@ -446,6 +411,7 @@ class MatchingTracker(Tracker):
     """
 
     config_class: ClassVar[type] = MatchingConfig
+    supports_inference: ClassVar[bool] = True
     train_parts: ClassVar[dict[str, tuple[str, ...]]] = {
         "head": ("head",),
         "fusion+head": ("fusion", "head"),
@@ -461,92 +427,6 @@ class MatchingTracker(Tracker):
     def summary_channels(self) -> int:
         """``2 D``: ``Z (B, M_S, D)`` max- and mean-pooled."""
         return 2 * self.fused_channels
-
-    def keeps_box(self, batch: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """The empty observations and, with ``config.hold_chamfer_m > 0``, the still targets
-        ``(B,)`` bool: the search points inside the reference box scaled 1.25 (the template's
-        crop) lie within ``hold_chamfer_m`` (:func:`trackers.ops.chamfer_distance`) of both
-        template crops, the previous frame's (it has not moved) and the first frame's (the box
-        is still on the target, not on background it lost it to). Points less than
-        :data:`HOLD_GROUND_CLEARANCE_M` above the box's bottom are left out (ground the crops
-        share whether or not the target moves), and a crop of fewer than
-        :data:`HOLD_MIN_POINTS` points decides nothing."""
-        keep = self.empty_observations(batch)
-        if self.config.hold_chamfer_m <= 0:
-            return keep
-        first, previous = self.template_crops(batch["template"])  # (B, P, 3) each
-        size, search = batch["size"], batch["search"]
-        in_box = _crop_mask(search, size)
-        still = in_box.sum(1) >= HOLD_MIN_POINTS
-        for crop in (previous, first):
-            mask = _above_ground(crop, size)  # the env cropped it
-            distance = ops.chamfer_distance(search, in_box, crop, mask)
-            still &= (distance < self.config.hold_chamfer_m) & (mask.sum(1) >= HOLD_MIN_POINTS)
-        return keep | still
-
-    def choose_action(
-        self, batch: Mapping[str, torch.Tensor], outputs: dict[str, torch.Tensor]
-    ) -> torch.Tensor:
-        """:meth:`best_action`, or with ``config.rerank_top_k = K > 0`` the re-ranked action
-        ``(B, 4)``: of the reference box (action 0) and the ``K`` best-scored proposals (each
-        clipped to ``max_action``), the box whose crop (search points inside it scaled 1.25,
-        above the ground as in :meth:`keeps_box`) has the smallest Chamfer distance to the first
-        frame's crop, a proposal's distance counted ``rerank_margin_m`` larger. A candidate
-        whose crop has fewer than :data:`HOLD_MIN_POINTS` points is out; where the first crop
-        has fewer, or no candidate is left, or a proposal is not finite, :meth:`best_action`
-        stands. Differentiable in the chosen proposal (not in the choice)."""
-        best = self.best_action(outputs)
-        k = min(self.config.rerank_top_k, outputs["scores"].shape[1])
-        if k == 0:
-            return best
-        b = best.shape[0]
-        top = outputs["scores"].topk(k, dim=1).indices  # (B, K)
-        proposals = outputs["proposals"][torch.arange(b, device=top.device)[:, None], top]
-        candidates = torch.cat(  # (B, 1 + K, 4): the reference box first
-            [torch.zeros_like(best)[:, None], self.clip_to_max_action(proposals)], dim=1
-        )
-        first, _ = self.template_crops(batch["template"])
-        size, search = batch["size"], batch["search"]
-        zeros = torch.zeros_like(candidates[..., :3])
-        boxes = torch.cat([candidates[..., :3], zeros, candidates[..., 3:]], dim=-1)  # (B, 1+K, 7)
-        # the search points in each candidate box's frame, (B (1 + K), N, 3)
-        in_frames = world_to_box_torch(search[:, None].detach(), boxes.detach())
-        in_frames = in_frames.reshape(b * (k + 1), -1, 3)
-        padding = (search == 0).all(-1).repeat_interleave(k + 1, 0)  # zero before moving
-        in_box = _crop_mask(in_frames, size.repeat_interleave(k + 1, 0)) & ~padding
-        first_mask = _above_ground(first, size)
-        distance = ops.chamfer_distance(
-            in_frames,
-            in_box,
-            first.repeat_interleave(k + 1, dim=0),
-            first_mask.repeat_interleave(k + 1, dim=0),
-        ).reshape(b, k + 1)
-        distance = torch.where(
-            in_box.sum(1).reshape(b, k + 1) >= HOLD_MIN_POINTS, distance, math.inf
-        )
-        distance[:, 1:] += self.config.rerank_margin_m
-        decides = (
-            (first_mask.sum(1) >= HOLD_MIN_POINTS)
-            & torch.isfinite(distance).any(1)
-            & torch.isfinite(proposals).all(-1).all(-1)
-        )
-        chosen = candidates[torch.arange(b, device=top.device), distance.argmin(1)]
-        return torch.where(decides[:, None], chosen, best)
-
-    def template_crops(self, template: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The first and the previous frame's crops ``(B, 256, 3)`` of ``template (B, 512,
-        3)``, laid out by the env's ``template_mode`` ``"first_and_previous"`` (the default; see
-        :attr:`env_options`); other modes do not keep the two apart, and the still-target test
-        refuses them."""
-        mode = self.env_options.get("template_mode", "first_and_previous")
-        if mode != "first_and_previous":
-            raise ValueError(
-                f"{self.name}: hold_chamfer_m needs the first and previous crops apart in the "
-                f"template (template_mode 'first_and_previous'); this tracker's env runs "
-                f"template_mode {mode!r}"
-            )
-        half = template.shape[1] // 2
-        return template[:, :half], template[:, half:]
 
     def build_fusion(
         self, in_channels: int

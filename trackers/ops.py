@@ -24,6 +24,7 @@ __all__ = [
     "ball_query",
     "ball_query_pairs",
     "chamfer_distance",
+    "distinct_points",
     "farthest_point_sample",
     "first_copy",
     "gather",
@@ -31,6 +32,8 @@ __all__ = [
     "hash_order",
     "hash_orders",
     "knn",
+    "layout_mean",
+    "nearest_distances",
     "pairwise_sqdist",
     "random_order",
 ]
@@ -354,45 +357,66 @@ def chamfer_distance(
     a: torch.Tensor, a_mask: torch.Tensor, b: torch.Tensor, b_mask: torch.Tensor
 ) -> torch.Tensor:
     """Symmetric Chamfer distance (the units of the points) between the masked point sets
-    ``a (B, N, C)`` / ``a_mask (B, N)`` and ``b (B, M, C)`` / ``b_mask (B, M)`` (bool) -> ``(B,)``:
+    ``a (B, N, 3)`` / ``a_mask (B, N)`` and ``b (B, M, 3)`` / ``b_mask (B, M)`` (bool) -> ``(B,)``:
     the mean over ``a``'s points of the distance to the nearest point of ``b``, and the same
     from ``b`` to ``a``, averaged (a repeated point counts in its set's mean as often as it
-    appears). ``inf`` where a set is empty.
+    appears). ``inf`` where a set is empty. Symmetric bit for bit.
 
-    The pairs are formed among the masked points only (each row's masked points moved first,
-    the rows cut to the batch's largest count); the nearest distances go back to their rows'
-    own ``(N,)`` / ``(M,)`` layout before the means, so a row's value is bit for bit the same
+    One row at a time, from :func:`distinct_points` (copies compared once),
+    :func:`nearest_distances` and :func:`layout_mean`: a row's value is bit for bit the same
     whatever else is in the batch.
     """
-    a_order, b_order = _masked_first(a_mask), _masked_first(b_mask)
-    a_kept, b_kept = torch.gather(a_mask, 1, a_order), torch.gather(b_mask, 1, b_order)
-    sq = pairwise_sqdist(gather(a, a_order), gather(b, b_order))  # (B, N', M')
-    # inf on the pairs with a masked-out point, by adding (B, N', 1) and (B, 1, M') penalties
-    # of 0 / inf: exact (x + 0 = x) and cheaper than a (B, N', M') mask
-    inf = torch.tensor(math.inf, dtype=sq.dtype, device=sq.device)
-    pen_a = torch.where(a_kept, 0.0, inf).to(sq.dtype)
-    pen_b = torch.where(b_kept, 0.0, inf).to(sq.dtype)
-    if sq.requires_grad:
-        sq = sq + pen_a[:, :, None] + pen_b[:, None, :]
-    else:
-        sq.add_(pen_a[:, :, None]).add_(pen_b[:, None, :])
-
-    def mean_nearest(nearest_sq: torch.Tensor, kept, order, mask) -> torch.Tensor:
-        # the root of the nearest squared distance (sqrt is monotonic: only N' roots), back in
-        # the row's own layout for a sum that does not depend on the batch
-        nearest = torch.where(kept, nearest_sq.sqrt(), 0.0)
-        full = torch.zeros(mask.shape, dtype=nearest.dtype, device=nearest.device)
-        return full.scatter(1, order, nearest).sum(1) / mask.sum(1)
-
-    a_to_b = mean_nearest(sq.amin(dim=2), a_kept, a_order, a_mask)
-    b_to_a = mean_nearest(sq.amin(dim=1), b_kept, b_order, b_mask)
-    out = 0.5 * (a_to_b + b_to_a)
-    return torch.where(a_mask.any(1) & b_mask.any(1), out, math.inf)
+    out = []
+    for i in range(a.shape[0]):
+        pa, ia = distinct_points(a[i], a_mask[i])
+        pb, ib = distinct_points(b[i], b_mask[i])
+        if not (len(pa) and len(pb)):
+            out.append(torch.full((1,), math.inf, dtype=a.dtype, device=a.device))
+            continue
+        a_near, b_near = nearest_distances(pa[None], None, pb)
+        a_to_b = layout_mean(a_near, ia, a_mask[i : i + 1])
+        out.append(0.5 * (a_to_b + layout_mean(b_near, ib, b_mask[i : i + 1])))
+    return torch.cat(out) if out else a.new_zeros(0)
 
 
-def _masked_first(mask: torch.Tensor) -> torch.Tensor:
-    """``(B, N')`` indices of each row's masked points first (in their order), the rows cut to
-    the largest masked count ``N'`` (at least 1)."""
-    order = torch.sort(mask.to(torch.uint8), dim=1, descending=True, stable=True).indices
-    keep = max(int(mask.sum(1).max()) if mask.numel() else 0, 1)
-    return order[:, :keep]
+def distinct_points(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The distinct masked points of one cloud ``points (L, 3)`` / ``mask (L,)`` (float32 copies
+    bit for bit equal; the env's resampling repeats points many times) -> ``(U, 3)`` and the
+    layout ``(L,)`` int64: the row of each masked point's copy (``U`` for the others). One sort
+    by the (x, y) bits; copies a point of other z separates count twice, which is exact too."""
+    bits = points.contiguous().view(torch.int32)
+    key = (bits[:, 0].long() << 32) | (bits[:, 1].long() & _MASK32)
+    key = torch.where(mask, key, torch.iinfo(torch.int64).max)  # finite points sort first
+    order = torch.argsort(key)
+    ordered = bits.index_select(0, order)
+    masked = mask.index_select(0, order)
+    new = torch.ones_like(mask)
+    new[1:] = (ordered[1:] != ordered[:-1]).any(1)
+    new &= masked
+    row = new.cumsum(0) - 1
+    layout = torch.empty_like(order).scatter_(0, order, torch.where(masked, row, len(mask)))
+    unique = points.index_select(0, order[new])
+    return unique, torch.where(mask, layout, len(unique))
+
+
+def nearest_distances(
+    a: torch.Tensor, a_in: torch.Tensor | None, b: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest-point distances between ``K`` sets of points ``a (K, U, 3)`` (``a_in (K, U)``
+    bool: which points each set holds; ``None``: all) and the set ``b (V, 3)``: ``(K, U)`` from
+    each of ``a``'s points to ``b`` and ``(K, V)`` from ``b``'s points to each set (``inf``
+    for an empty set). One pairwise pass; exact to float rounding, the same on any device."""
+    k, u, c = a.shape
+    sq = pairwise_sqdist(a.reshape(1, k * u, c), b[None]).reshape(k, u, -1)  # (K, U, V)
+    if a_in is not None:  # a penalty of 0 / inf: exact (x + 0 = x)
+        sq.add_(torch.where(a_in, 0.0, math.inf).to(sq.dtype)[..., None])
+    return sq.amin(dim=2).sqrt(), sq.amin(dim=1).sqrt()
+
+
+def layout_mean(near: torch.Tensor, layout: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The mean over a layout's masked positions ``mask (K, L)`` of their points' distances
+    ``near (K, U)`` (``layout (L,)``: each position's point, :func:`distinct_points`) -> ``(K,)``.
+    The sum runs over the whole ``(L,)`` layout, zeros at the unmasked positions, so it does
+    not depend on how the points were deduplicated or batched."""
+    full = near.gather(1, layout.clamp(max=near.shape[1] - 1).expand(near.shape[0], -1))
+    return torch.where(mask, full, 0.0).sum(1) / mask.sum(1)

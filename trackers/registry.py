@@ -21,6 +21,12 @@ the weights were trained and chosen on) and an optional ``env_options`` entry (J
 known; a file without ``env_options`` loads with ``{}`` (the env's defaults), one without
 ``provenance`` with every field ``"unknown"``.
 
+And an optional ``inference`` entry (JSON): how the tracker decides on its network's outputs
+(``tracker.inference``, a :class:`trackers.decision.InferenceConfig`: the still-target test and
+the re-ranking), written only when not the defaults. Older files kept those fields in
+``config``; they migrate on load (:func:`trackers.decision.split_inference`) and act as before.
+``load(..., inference=...)`` overrides the file's.
+
 Integrity: a shipped checkpoint (``trackers/checkpoints/``) loads only when its SHA-256 matches
 ``trackers/checkpoints/manifest.json`` (:func:`write_manifest` records it); no checkpoint loads with
 NaN or inf weights, and none is saved with them.
@@ -53,6 +59,7 @@ __all__ = [
     "default_env_options",
     "env_options_from_metadata",
     "env_options_metadata",
+    "inference_metadata",
     "find_checkpoint",
     "load",
     "load_file",
@@ -62,6 +69,8 @@ __all__ = [
     "save",
     "size_config",
     "tracker_class",
+    "tracker_from_metadata",
+    "tracker_metadata",
     "unregister",
     "write_manifest",
 ]
@@ -210,6 +219,64 @@ def env_options_metadata(tracker: Any) -> str | None:
     return json.dumps(options, sort_keys=True)
 
 
+def inference_metadata(tracker: Any) -> str | None:
+    """The checkpoint metadata (JSON) of ``tracker.inference``; ``None`` for the defaults."""
+    from trackers.decision import InferenceConfig
+
+    if tracker.inference == InferenceConfig():
+        return None
+    return json.dumps(tracker.inference.to_dict(), sort_keys=True)
+
+
+def tracker_metadata(tracker: Any) -> dict[str, str]:
+    """The metadata a checkpoint of ``tracker`` holds beside its weights: ``config`` (JSON) and
+    the non-default ``env_options`` and ``inference`` (JSON)."""
+    from trackers.config import config_to_dict
+
+    meta = {"config": json.dumps(config_to_dict(tracker.config), sort_keys=True)}
+    for key, value in (
+        ("env_options", env_options_metadata(tracker)),
+        ("inference", inference_metadata(tracker)),
+    ):
+        if value is not None:
+            meta[key] = value
+    return meta
+
+
+def tracker_from_metadata(name: str, meta: dict[str, Any], path: str | Path) -> Any:
+    """An untrained ``name`` tracker built from a checkpoint's metadata (``config``,
+    ``env_options``, ``inference``; the inference fields of older files' ``config`` migrate)
+    -> the tracker; ``ValueError`` naming the file ``path``."""
+    from trackers.decision import InferenceConfig, split_inference
+
+    env_options = env_options_from_metadata(path, meta.get("env_options"))
+    try:
+        config = _migrate(json.loads(meta["config"]))
+        raw = meta.get("inference")
+        stored = json.loads(raw) if isinstance(raw, str) else raw
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: config or inference metadata is not valid JSON: {exc}") from exc
+    config, legacy = split_inference(config)
+    if legacy and stored is not None:
+        raise ValueError(
+            f"{path}: inference settings both in the config ({sorted(legacy)}) and in the "
+            f"inference metadata; expected one"
+        )
+    inference = InferenceConfig.from_dict(
+        legacy if stored is None else stored, where=f"{path}: inference"
+    )
+    try:
+        model = make(name, **config)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{path}: checkpoint config does not fit {name!r}: {exc}") from exc
+    model.env_options = env_options
+    try:
+        model.inference = inference
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from exc
+    return model
+
+
 def make(name: str, **config: Any):
     """A fresh tracker: ``make("p2b", sampling_seed=1, head={"num_proposals": 32})``.
 
@@ -220,12 +287,11 @@ def make(name: str, **config: Any):
 
 
 def save(tracker: Any, path: str | Path, *, provenance: Any = None) -> Path:
-    """Write ``tracker`` (a learned tracker) with its config, its non-empty ``env_options`` and
-    its provenance (``provenance``, else ``tracker.provenance``; none: the key is left out) to
-    ``path`` (atomically). NaN or inf weights are refused, naming the tensor: ``load`` would
-    refuse the file."""
+    """Write ``tracker`` (a learned tracker) with its config, its non-default ``env_options`` and
+    ``inference`` and its provenance (``provenance``, else ``tracker.provenance``; none: the key
+    is left out) to ``path`` (atomically). NaN or inf weights are refused, naming the tensor:
+    ``load`` would refuse the file."""
     from trackers.base import Tracker
-    from trackers.config import config_to_dict
     from trackers.provenance import METADATA_KEY
 
     if not isinstance(tracker, Tracker):
@@ -237,42 +303,21 @@ def save(tracker: Any, path: str | Path, *, provenance: Any = None) -> Path:
         )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    config_json = json.dumps(config_to_dict(tracker.config), sort_keys=True)
-    options_json = env_options_metadata(tracker)
-    extra = {} if options_json is None else {"env_options": options_json}
+    meta = {"format": FORMAT, "version": VERSION, "tracker": tracker.name}
+    meta.update(tracker_metadata(tracker))
     provenance = provenance if provenance is not None else getattr(tracker, "provenance", None)
     if provenance is not None:
-        extra[METADATA_KEY] = provenance.to_json()
+        meta[METADATA_KEY] = provenance.to_json()
     state = {k: v.detach().cpu().contiguous() for k, v in tracker.state_dict().items()}
     _check_finite(path, state, "refusing to save")
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
     try:
         if path.suffix in (".pt", ".pth"):
-            torch.save(
-                {
-                    "format": FORMAT,
-                    "version": VERSION,
-                    "tracker": tracker.name,
-                    "config": config_json,
-                    "state_dict": state,
-                    **extra,
-                },
-                tmp,
-            )
+            torch.save({**meta, "state_dict": state}, tmp)
         else:
             from safetensors.torch import save_file
 
-            save_file(
-                state,
-                str(tmp),
-                metadata={
-                    "format": FORMAT,
-                    "version": VERSION,
-                    "tracker": tracker.name,
-                    "config": config_json,
-                    **extra,
-                },
-            )
+            save_file(state, str(tmp), metadata=meta)
         tmp.replace(path)
     finally:
         tmp.unlink(missing_ok=True)
@@ -291,7 +336,7 @@ def _read(path: Path) -> tuple[dict[str, str], dict[str, torch.Tensor]]:
             ) from exc
         if not isinstance(blob, dict) or "state_dict" not in blob:
             raise ValueError(f"{path} is not a pointtrack tracker checkpoint (no state_dict)")
-        keys = ("format", "version", "tracker", "config", "env_options", "provenance")
+        keys = ("format", "version", "tracker", "config", "env_options", "inference", "provenance")
         meta = {k: blob[k] for k in keys if k in blob}
         return meta, blob["state_dict"]
     return read_safetensors(path, "tracker checkpoint")
@@ -404,7 +449,7 @@ def _migrate(config: dict[str, Any]) -> dict[str, Any]:
 
 def load_file(path: str | Path, expect: str | None = None, map_location: Any = "cpu"):
     """Load a checkpoint file -> tracker in eval mode on ``map_location``, its ``env_options``
-    restored (``{}`` when the file records none) and its ``provenance``
+    restored (``{}`` when the file records none), its ``inference`` and its ``provenance``
     (:class:`trackers.provenance.Provenance`, every field unknown when the file records none)."""
     from trackers.provenance import METADATA_KEY, Provenance
 
@@ -428,22 +473,13 @@ def load_file(path: str | Path, expect: str | None = None, map_location: Any = "
             f"trackers: {learned}"
         )
     _check_finite(path, state)
-    env_options = env_options_from_metadata(path, meta.get("env_options"))
-    try:
-        config = _migrate(json.loads(meta["config"]))
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: config metadata is not valid JSON: {exc}") from exc
-    try:
-        model = make(name, **config)
-    except (ValueError, TypeError) as exc:
-        raise ValueError(f"{path}: checkpoint config does not fit {name!r}: {exc}") from exc
+    model = tracker_from_metadata(name, meta, path)
     try:
         model.load_state_dict(state, strict=True)
     except RuntimeError as exc:
         raise ValueError(
             f"{path}: weights do not match a {name!r} with the stored config: {exc}"
         ) from exc
-    model.env_options = env_options
     model.provenance = Provenance.from_json(meta.get(METADATA_KEY), f"{path}: provenance metadata")
     return model.to(map_location).eval()
 
@@ -473,9 +509,41 @@ def find_checkpoint(name_or_path: str | Path) -> Path | None:
     return None
 
 
-def load(name_or_path: str | Path, *, expect: str | None = None, map_location: Any = "cpu"):
+def load(
+    name_or_path: str | Path,
+    *,
+    expect: str | None = None,
+    map_location: Any = "cpu",
+    inference: Any = None,
+):
     """A tracker from a file path, a shipped checkpoint name (``"p2b-kitti1-w"``) or a
-    registered name (``"p2b"``: untrained; ``"previous_box"``: a baseline)."""
+    registered name (``"p2b"``: untrained; ``"previous_box"``: a baseline).
+
+    ``inference``: how the learned tracker decides, overriding the file's (evaluation under
+    other settings): a :class:`trackers.decision.InferenceConfig`, or a mapping of some of its
+    fields (the others stay the file's)."""
+    tracker = _load(name_or_path, expect, map_location)
+    if inference is not None:
+        tracker.inference = _inference_override(tracker, inference, name_or_path)
+    return tracker
+
+
+def _inference_override(tracker: Any, inference: Any, source: Any) -> Any:
+    """``inference`` (an ``InferenceConfig`` or a mapping of fields over the tracker's) ->
+    the tracker's new ``InferenceConfig``; errors name ``source``."""
+    from trackers.decision import InferenceConfig
+
+    if not _is_learned(type(tracker)):
+        raise ValueError(f"{source!r} is a baseline: it has no inference settings")
+    if isinstance(inference, InferenceConfig):
+        return inference
+    where = f"inference override for {source}"
+    if not isinstance(inference, dict):
+        raise ValueError(f"{where}: expected an InferenceConfig or a dict of its fields")
+    return InferenceConfig.from_dict({**tracker.inference.to_dict(), **inference}, where)
+
+
+def _load(name_or_path: str | Path, expect: str | None, map_location: Any):
     checkpoint = find_checkpoint(name_or_path)
     if checkpoint is not None:
         return load_file(checkpoint, expect, map_location)

@@ -905,8 +905,7 @@ class ResidualTracker:
         """Write ``path`` (safetensors, atomic)."""
         from safetensors.torch import save_file
 
-        from trackers.config import config_to_dict
-        from trackers.registry import env_options_metadata
+        from trackers.registry import tracker_metadata
 
         path = Path(path)
         tensors = {
@@ -920,14 +919,13 @@ class ResidualTracker:
             "format": RESIDUAL_FORMAT,
             "version": FORMAT_VERSION,
             "base_tracker": self.base.name,
-            "base_config": json.dumps(config_to_dict(self.base.config), sort_keys=True),
             "scale": json.dumps([float(s) for s in self.scale]),
             "name": self.name,
             "log_std_init": json.dumps(self.log_std_init),
         }
-        options = env_options_metadata(self.base)
-        if options is not None:  # as trackers.save: written only when not the env's defaults
-            meta["env_options"] = options
+        # as trackers.save: the config, and env_options / inference where not the defaults
+        base_meta = tracker_metadata(self.base)
+        meta.update(base_config=base_meta.pop("config"), **base_meta)
         tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
         save_file(tensors, str(tmp), metadata=meta)
         tmp.replace(path)
@@ -952,8 +950,7 @@ class ResidualTracker:
     @classmethod
     def load(cls, path: str | Path) -> ResidualTracker:
         """From ``residual.safetensors`` or a run directory holding it (no unpickling)."""
-        import trackers
-        from trackers.registry import env_options_from_metadata, read_safetensors
+        from trackers.registry import read_safetensors, tracker_from_metadata
 
         path = Path(path)
         if path.is_dir():
@@ -976,11 +973,11 @@ class ResidualTracker:
             raise ValueError(
                 f"{path} is not a pointtrack residual checkpoint (format={meta.get('format')!r})"
             )
-        base = trackers.make(meta["base_tracker"], **json.loads(meta["base_config"]))
+        base_meta = {**meta, "config": meta["base_config"]}  # older files: inference inside
+        base = tracker_from_metadata(meta["base_tracker"], base_meta, path)
         base.load_state_dict(
             {k[5:]: v for k, v in state.items() if k.startswith("base.")}, strict=True
         )
-        base.env_options = env_options_from_metadata(path, meta.get("env_options"))
         log_std = float(json.loads(meta["log_std_init"]))
         policy = _residual_policy(log_std)
         policy.load_state_dict(

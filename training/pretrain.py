@@ -161,13 +161,9 @@ LOSS_ONLY_HEAD_FIELDS = (
 
 def architecture_config(config: dict[str, Any]) -> dict[str, Any]:
     """A tracker config (``trackers.config.config_to_dict``) without what only shapes the
-    loss (``loss_weights``, :data:`LOSS_ONLY_HEAD_FIELDS`) or acts at inference only
-    (:data:`trackers.base.INFERENCE_ONLY_FIELDS`): weights move between two trackers whose
-    architecture configs are equal (``init_weights`` may start a run with other labels)."""
-    from trackers.base import INFERENCE_ONLY_FIELDS
-
-    dropped = ("loss_weights", *INFERENCE_ONLY_FIELDS)
-    kept = {k: v for k, v in config.items() if k not in dropped}
+    loss (``loss_weights``, :data:`LOSS_ONLY_HEAD_FIELDS`): weights move between two trackers
+    whose architecture configs are equal (``init_weights`` may start a run with other labels)."""
+    kept = {k: v for k, v in config.items() if k != "loss_weights"}
     if isinstance(kept.get("head"), dict):
         kept["head"] = {k: v for k, v in kept["head"].items() if k not in LOSS_ONLY_HEAD_FIELDS}
     return kept

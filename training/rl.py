@@ -29,9 +29,10 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
   rollout and the update (PPO's ratio would not start at 1). :meth:`TrackerPolicy.train` keeps
   the tracker in eval mode whatever SB3's ``set_training_mode`` asks; an eval-mode forward is
   still differentiable.
-* **Action mean** ``action_mode="best"`` (default): ``tracker.choose_action`` (the best-scored
-  proposal, or the re-ranked one of a matching tracker with ``rerank_top_k``; M2-Track's final
-  box), exactly what ``tracker.act`` executes, so the policy starts
+* **Action mean** ``action_mode="best"`` (default): ``trackers.decision.decide`` (the
+  best-scored proposal, or the re-ranked one under ``tracker.inference``; M2-Track's final
+  box; zero where the tracker keeps the box; clipped), exactly what ``tracker.act`` executes,
+  so the policy starts
   as the pretrained tracker and PPO's gradient reaches the box regression of that proposal
   (votes, clustering, offsets, and through them the fusion and backbone features); the scores
   get no gradient (an argmax is piecewise constant). ``"soft"``: the softmax(scores /
@@ -322,20 +323,21 @@ class TrackerPolicy(ActorCriticPolicy):
         """Action mean ``(B, 4)`` in ``[-1, 1]`` units and value ``(B,)`` (None unless
         ``value``) from one tracker forward. Raises ``FloatingPointError`` on a non-finite
         mean or value (broken weights must stop a run, not be trained on)."""
+        from trackers.decision import decide
+
         batch, _ = self.tracker.prepare(obs)
         out = self.tracker(batch)
-        if self.action_mode == "best":
-            action = self.tracker.choose_action(batch, out)
-        else:
+        soft = None  # "best": the action tracker.act executes
+        if self.action_mode == "soft":
             proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
             weights = torch.softmax(scores / self.temperature, dim=1)
-            action = (weights[..., None] * proposals).sum(dim=1)
-        # tracker.act's rules: no move where it keeps the box (an empty observation, a still
-        # target), clip to max_action
-        keep = self.tracker.keeps_box(batch)
-        action = torch.where(keep[:, None], torch.zeros_like(action), action)
-        a_max = self.max_action.to(action.dtype)
-        mean = torch.maximum(torch.minimum(action, a_max), -a_max) / a_max
+            soft = (weights[..., None] * proposals).sum(dim=1)
+        # tracker.act's decision: no move where it keeps the box, the clip to max_action
+        a_max = self.max_action
+        action = decide(
+            self.tracker, batch, out, self.tracker.inference, action=soft, max_action=a_max
+        )
+        mean = action / a_max.to(action.dtype)
         if not torch.isfinite(mean).all():
             raise FloatingPointError("TrackerPolicy: the tracker's action is NaN or inf")
         if not value:

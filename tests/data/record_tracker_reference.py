@@ -26,7 +26,7 @@ import torch
 
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
-from trackers.base import INFERENCE_ONLY_FIELDS
+from trackers.decision import InferenceConfig
 from trackers.toy import toy_batch
 
 CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"]
@@ -59,9 +59,7 @@ def network_only(model):
     """``model`` with the inference-only still-target test and re-ranking off (added after the
     first recordings; their own tests are in test_trackers.py): ``act`` is the network's
     action."""
-    for field in INFERENCE_ONLY_FIELDS:
-        if hasattr(model.config, field):
-            setattr(model.config, field, type(getattr(model.config, field))(0))
+    model.inference = InferenceConfig()
     return model
 
 

@@ -1,0 +1,367 @@
+"""The decision step: from a tracker's network outputs to the action it executes.
+
+A tracker's network (``forward``) scores proposals; which box the tracker then executes is
+decided here, by settings that act at inference only and are no part of the architecture
+(:class:`InferenceConfig`, ``tracker.inference``; the weights do not depend on them):
+
+* the **still-target test** (``hold_chamfer_m > 0``, :func:`keeps_box`): the tracker keeps the
+  reference box (action 0) where the current points inside it (scaled 1.25) lie within
+  ``hold_chamfer_m`` metres (symmetric Chamfer distance) of both template crops: the target
+  has not moved against the sensor. Not in the papers: the matching head alone lets a parked
+  car's box slide along it (docs/checkpoints.md, "Holding still targets");
+* the **re-ranking** (``rerank_top_k = K > 0``, :func:`choose_action`): of the reference box and
+  the ``K`` best-scored proposals, the box whose crop lies nearest (symmetric Chamfer distance)
+  to the first frame's crop, a proposal counting ``rerank_margin_m`` farther than it is: the
+  network moves the box only where the move matches the target better. Not in the papers
+  either (docs/checkpoints.md, "Re-ranking by the first crop");
+* the **clip** to ``max_action`` (:func:`clip_action`).
+
+:func:`decide` is the one place these run, in this order: ``Tracker.act`` and the RL policy
+(``training.rl.TrackerPolicy``) both call it. Both tests need the matching trackers' observation
+layout (``template (B, 512, 3)`` as the first and the previous frame's crops, ``search``,
+``size``) and their ``proposals`` / ``scores``; a tracker without it (M2-Track) refuses a
+non-default :class:`InferenceConfig` (``Tracker.supports_inference``).
+
+Cost (issue 41): one observation at a time (as the eval forward; a row's decision does not
+depend on its batch), every candidate's crop and Chamfer distance in one vectorised pass, the
+first crop prepared once for all candidates, and copies of a point (the env's resampling
+repeats points) compared once (:func:`trackers.ops.distinct_points`); the distances are bit for
+bit those of :func:`trackers.ops.chamfer_distance` one candidate at a time.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import numbers
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from envs.geometry import world_to_box_torch
+from envs.observation import TEMPLATE_SCALE
+from trackers import ops
+
+if TYPE_CHECKING:
+    from trackers.base import Tracker
+
+__all__ = [
+    "HOLD_GROUND_CLEARANCE_M",
+    "HOLD_MIN_POINTS",
+    "INFERENCE_FIELDS",
+    "InferenceConfig",
+    "Scene",
+    "choose_action",
+    "clip_action",
+    "decide",
+    "keeps_box",
+    "scenes",
+    "split_inference",
+    "template_crops",
+]
+
+#: Fewest points in a crop for the still-target test (or a re-ranking candidate) to count.
+HOLD_MIN_POINTS = 5
+#: The still-target test and the re-ranking leave out points this close above the box's bottom
+#: (m): the ground the crops share whether or not the target moves.
+HOLD_GROUND_CLEARANCE_M = 0.2
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """How a tracker decides on its network's outputs (see the module doc); the defaults (0)
+    turn both the still-target test and the re-ranking off: the best-scored proposal, clipped.
+
+    ``hold_chamfer_m``: the still-target test's distance (metres, finite, >= 0);
+    ``rerank_top_k``: how many best-scored proposals the re-ranking weighs (an integer >= 0);
+    ``rerank_margin_m``: how much farther a proposal's crop counts than it is (metres, >= 0).
+    """
+
+    hold_chamfer_m: float = 0.0
+    rerank_top_k: int = 0
+    rerank_margin_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, meaning in (
+            ("hold_chamfer_m", "metres; 0 turns the still-target test off"),
+            ("rerank_margin_m", "metres"),
+        ):
+            value = getattr(self, name)
+            real = isinstance(value, numbers.Real) and not isinstance(value, bool)
+            if not (real and math.isfinite(value) and value >= 0):
+                raise ValueError(
+                    f"InferenceConfig.{name} = {value!r}: expected a finite distance >= 0 "
+                    f"({meaning})"
+                )
+            object.__setattr__(self, name, float(value))
+        k = self.rerank_top_k
+        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 0:
+            raise ValueError(
+                f"InferenceConfig.rerank_top_k = {k!r}: expected an integer >= 0 (proposals; "
+                f"0 turns the re-ranking off)"
+            )
+        object.__setattr__(self, "rerank_top_k", int(k))
+
+    @classmethod
+    def from_dict(cls, data: Any, where: str = "inference") -> InferenceConfig:
+        """From a mapping of fields (JSON metadata, a CLI's overrides); ``ValueError`` naming
+        ``where``, the key or the field and the bad value."""
+        if not isinstance(data, Mapping):
+            raise ValueError(
+                f"{where}: expected a mapping of {list(INFERENCE_FIELDS)}, got {data!r}"
+            )
+        unknown = sorted(set(data) - set(INFERENCE_FIELDS))
+        if unknown:
+            raise ValueError(
+                f"{where}: unknown field(s) {unknown}; valid: {list(INFERENCE_FIELDS)}"
+            )
+        try:
+            return cls(**data)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from exc
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+#: The :class:`InferenceConfig` fields (checkpoints of before it stored them in the architecture
+#: config: :func:`split_inference` moves them out).
+INFERENCE_FIELDS = tuple(f.name for f in fields(InferenceConfig))
+
+
+def split_inference(config: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """An architecture config of an older checkpoint -> (the config without the
+    :data:`INFERENCE_FIELDS`, those fields): how old files migrate on load."""
+    inference = {k: v for k, v in config.items() if k in INFERENCE_FIELDS}
+    return {k: v for k, v in config.items() if k not in INFERENCE_FIELDS}, inference
+
+
+def clip_action(action: torch.Tensor, max_action: Any) -> torch.Tensor:
+    """``action (..., 4)`` clipped to ``[-max_action, max_action]`` per component (a NaN stays
+    NaN)."""
+    a_max = torch.as_tensor(max_action, device=action.device, dtype=action.dtype)
+    return torch.maximum(torch.minimum(action, a_max), -a_max)
+
+
+def template_crops(tracker: Tracker, template: torch.Tensor) -> torch.Tensor:
+    """The first and the previous frame's crops ``(B, 2, 256, 3)`` of ``template (B, 512,
+    3)`` (``[:, 0]`` the first), laid out by the env's ``template_mode`` ``"first_and_previous"``
+    (the default; see ``tracker.env_options``); other modes do not keep the two apart, and the
+    still-target test and the re-ranking refuse them."""
+    mode = tracker.env_options.get("template_mode", "first_and_previous")
+    if mode != "first_and_previous":
+        raise ValueError(
+            f"{tracker.name}: the still-target test and the re-ranking need the first and "
+            f"previous crops apart in the template (template_mode 'first_and_previous'); this "
+            f"tracker's env runs template_mode {mode!r}"
+        )
+    return template.reshape(template.shape[0], 2, template.shape[1] // 2, 3)
+
+
+def _above_ground(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """``(B, ..., N)`` bool: the points ``(B, ..., N, 3)`` (box frame; zero rows are padding)
+    at least :data:`HOLD_GROUND_CLEARANCE_M` above the bottom of the box of ``size (B, 3)``."""
+    size = size.reshape(size.shape[0], *([1] * (points.dim() - 2)), 3)
+    floor = -size[..., 2] / 2 + HOLD_GROUND_CLEARANCE_M
+    return (points != 0).any(-1) & (points[..., 2] > floor)
+
+
+def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """``(B, ..., N)`` bool: the points ``(B, ..., N, 3)`` of :func:`_above_ground` inside the
+    box scaled :data:`TEMPLATE_SCALE` (the template's crop of them)."""
+    half = size.reshape(size.shape[0], *([1] * (points.dim() - 2)), 3) * (TEMPLATE_SCALE / 2)
+    return (points.abs() <= half).all(-1) & _above_ground(points, size)
+
+
+class Scene:
+    """One observation as the still-target test and the re-ranking read it: ``search (N, 3)``,
+    ``size (3,)`` and the template crops ``(2, 256, 3)`` (first, previous), with the point sets
+    both need computed once, when first asked (``act`` builds the scenes before the test and
+    hands the moving ones to the re-ranking after the network)."""
+
+    def __init__(self, search: torch.Tensor, size: torch.Tensor, crops: torch.Tensor) -> None:
+        self.search, self.size, self.crops = search.detach(), size, crops
+
+    @functools.cached_property
+    def real(self) -> torch.Tensor:
+        """``(N,)`` bool: the search's points (zero rows pad it, wherever a box moves them)."""
+        return (self.search != 0).any(-1)
+
+    @functools.cached_property
+    def points(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The search's distinct real points ``(U, 3)`` and their layout ``(N,)``
+        (:func:`trackers.ops.distinct_points`)."""
+        return ops.distinct_points(self.search, self.real)
+
+    @functools.cached_property
+    def crop_masks(self) -> torch.Tensor:
+        """``(2, 256)`` bool: the crops' points above the ground (the env cropped them)."""
+        return _above_ground(self.crops.reshape(1, -1, 3), self.size[None]).reshape(2, -1)
+
+    @functools.cached_property
+    def first(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first crop's distinct points ``(F, 3)`` and their layout ``(256,)``."""
+        return ops.distinct_points(self.crops[0], self.crop_masks[0])
+
+    @functools.cached_property
+    def previous(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The previous crop's distinct points ``(P, 3)`` and their layout ``(256,)``."""
+        return ops.distinct_points(self.crops[1], self.crop_masks[1])
+
+
+def scenes(tracker: Tracker, batch: Mapping[str, torch.Tensor]) -> list[Scene]:
+    """The :class:`Scene` of each observation of ``batch``."""
+    crops = template_crops(tracker, batch["template"])
+    return [Scene(*row) for row in zip(batch["search"], batch["size"], crops, strict=True)]
+
+
+def keeps_box(
+    tracker: Tracker,
+    batch: Mapping[str, torch.Tensor],
+    inference: InferenceConfig,
+    observed: list[Scene] | None = None,
+) -> torch.Tensor:
+    """``(B,)`` True where the tracker keeps the reference box (action 0) without running the
+    network: its empty observations (``tracker.empty_observations``) and, with
+    ``inference.hold_chamfer_m > 0``, the still targets: the search points inside the reference
+    box scaled 1.25 (the template's crop) lie within ``hold_chamfer_m``
+    (:func:`trackers.ops.chamfer_distance`) of both template crops, the previous frame's (it has
+    not moved) and the first frame's (the box is still on the target, not on background it lost
+    it to). Points less than :data:`HOLD_GROUND_CLEARANCE_M` above the box's bottom are left
+    out, and a crop of fewer than :data:`HOLD_MIN_POINTS` points decides nothing. ``observed``:
+    the batch's :func:`scenes`, if built already."""
+    keep = tracker.empty_observations(batch)
+    if inference.hold_chamfer_m <= 0:
+        return keep
+    observed = scenes(tracker, batch) if observed is None else observed
+    return keep | torch.stack([_still(scene, inference.hold_chamfer_m) for scene in observed])
+
+
+def _still(scene: Scene, hold_m: float) -> torch.Tensor:
+    """The still-target test of one observation -> a bool scalar: the reference box's crop
+    against both template crops, in one pass."""
+    points, layout = scene.points
+    masks = scene.crop_masks
+    if not len(points):  # an empty search
+        return torch.zeros((), dtype=torch.bool, device=points.device)
+    in_crop = _crop_mask(points[None], scene.size[None])  # (1, U): the reference box's crop
+    in_box = in_crop[0].gather(0, layout.clamp(max=len(points) - 1)) & scene.real
+    enough = (in_box.sum() >= HOLD_MIN_POINTS) & (masks.sum(1) >= HOLD_MIN_POINTS).all()
+    if not bool(enough):
+        return enough
+    (first, first_layout), (previous, previous_layout) = scene.first, scene.previous
+    crop_points = torch.cat([first, previous])  # the two crops as two sets of one cloud
+    held = torch.arange(len(crop_points), device=first.device) < len(first)
+    held = torch.stack([held, ~held])
+    crop_layout = torch.stack([first_layout, previous_layout + len(first)])
+    cropped = in_crop[0].nonzero()[:, 0]
+    crop_near, near = ops.nearest_distances(
+        crop_points.expand(2, -1, -1), held, points.index_select(0, cropped)
+    )
+    search_near = near.new_zeros(2, len(points)).index_copy_(1, cropped, near)
+    crop_to_search = ops.layout_mean(crop_near, crop_layout, masks)
+    search_to_crop = ops.layout_mean(search_near, layout, in_box.expand(2, -1))
+    return (0.5 * (crop_to_search + search_to_crop) < hold_m).all()
+
+
+def choose_action(
+    tracker: Tracker,
+    batch: Mapping[str, torch.Tensor],
+    outputs: dict[str, torch.Tensor],
+    inference: InferenceConfig,
+    max_action: Any,
+    observed: list[Scene] | None = None,
+) -> torch.Tensor:
+    """``tracker.best_action(outputs)``, or with ``inference.rerank_top_k = K > 0`` the
+    re-ranked action ``(B, 4)``: of the reference box (action 0) and the ``K`` best-scored
+    proposals (each clipped to ``max_action``), the box whose crop (search points inside it
+    scaled 1.25, above the ground as in :func:`keeps_box`) has the smallest Chamfer distance to
+    the first frame's crop, a proposal's distance counted ``rerank_margin_m`` larger (ties: the
+    earlier, the reference box first). A candidate whose crop has fewer than
+    :data:`HOLD_MIN_POINTS` points is out; where the first crop has fewer, or no candidate is
+    left, or a proposal is not finite, the best action stands. Differentiable in the chosen
+    proposal (not in the choice). ``observed``: the batch's :func:`scenes`, if built already."""
+    best = tracker.best_action(outputs)
+    k = min(inference.rerank_top_k, outputs["scores"].shape[1])
+    if k == 0:
+        return best
+    b = best.shape[0]
+    top = outputs["scores"].topk(k, dim=1).indices  # (B, K)
+    proposals = outputs["proposals"][torch.arange(b, device=top.device)[:, None], top]
+    candidates = torch.cat(  # (B, 1 + K, 4): the reference box first
+        [torch.zeros_like(best)[:, None], clip_action(proposals, max_action)], dim=1
+    )
+    observed = scenes(tracker, batch) if observed is None else observed
+    zeros = torch.zeros_like(candidates[..., :3])
+    boxes = torch.cat([candidates[..., :3], zeros, candidates[..., 3:]], dim=-1).detach()
+    distance = torch.stack([_crop_distances(*row) for row in zip(observed, boxes, strict=True)])
+    distance[:, 1:] += inference.rerank_margin_m
+    first_points = torch.stack([scene.crop_masks[0].sum() for scene in observed])
+    decides = (
+        (first_points >= HOLD_MIN_POINTS)
+        & torch.isfinite(distance).any(1)
+        & torch.isfinite(proposals).all(-1).all(-1)
+    )
+    chosen = candidates[torch.arange(b, device=top.device), distance.argmin(1)]
+    return torch.where(decides[:, None], chosen, best)
+
+
+def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
+    """The Chamfer distance of each candidate box's crop of one observation's search to its
+    first crop, ``inf`` for a crop of fewer than :data:`HOLD_MIN_POINTS` points: boxes ``(C,
+    7)`` -> ``(C,)``. The search's distinct points (copies stay copies in every frame) in every
+    candidate's frame, one pass for all."""
+    inf = torch.full((len(boxes),), math.inf, dtype=scene.search.dtype, device=boxes.device)
+    first_mask = scene.crop_masks[0]
+    if not (bool(first_mask.any()) and bool(scene.real.any())):
+        return inf
+    (points, layout), (first, first_layout) = scene.points, scene.first
+    in_frames = world_to_box_torch(points[None], boxes)  # (C, U, 3)
+    in_crop = _crop_mask(in_frames, scene.size[None].expand(len(boxes), 3))  # (C, U)
+    # only the points some crop holds meet the first crop's (the rest of the search is far)
+    cropped = in_crop.any(0).nonzero()[:, 0]
+    if not len(cropped):
+        return inf
+    near, first_near = ops.nearest_distances(
+        in_frames.index_select(1, cropped), in_crop.index_select(1, cropped), first
+    )
+    crop_near = near.new_zeros(in_crop.shape).index_copy_(1, cropped, near)
+    in_box = in_crop.gather(1, layout.clamp(max=len(points) - 1).expand(len(boxes), -1))
+    in_box &= scene.real
+    crop_to_first = ops.layout_mean(crop_near, layout, in_box)
+    first_to_crop = ops.layout_mean(first_near, first_layout, first_mask.expand(len(boxes), -1))
+    distance = 0.5 * (crop_to_first + first_to_crop)
+    return torch.where(in_box.sum(1) >= HOLD_MIN_POINTS, distance, inf)
+
+
+def decide(
+    tracker: Tracker,
+    batch: Mapping[str, torch.Tensor],
+    outputs: dict[str, torch.Tensor],
+    inference: InferenceConfig,
+    *,
+    action: torch.Tensor | None = None,
+    max_action: Any = None,
+    keep: torch.Tensor | None = None,
+    observed: list[Scene] | None = None,
+) -> torch.Tensor:
+    """The action ``(B, 4)`` (env units: metres, radians) the tracker executes on ``batch``
+    from its forward's ``outputs``: zero where it keeps the box (:func:`keeps_box`; ``keep
+    (B,)`` bool gives it where it is known already: ``act`` tests it before the network, to skip
+    the network there); elsewhere ``action (B, 4)`` if given (the RL policy's soft mode), else
+    :func:`choose_action`; then the one clip to ``max_action`` (default
+    ``tracker.max_action``). A non-finite action comes out NaN (the caller decides: ``act``
+    moves nowhere, the RL policy raises). ``observed``: the batch's :func:`scenes`, if built
+    already. Differentiable in the chosen action."""
+    max_action = tracker.max_action if max_action is None else max_action
+    if observed is None and (inference.hold_chamfer_m > 0 or inference.rerank_top_k > 0):
+        observed = scenes(tracker, batch)  # what the test and the re-ranking share
+    if keep is None:
+        keep = keeps_box(tracker, batch, inference, observed)
+    if action is None:
+        action = choose_action(tracker, batch, outputs, inference, max_action, observed)
+    action = torch.where(torch.isfinite(action), action, math.nan)
+    action = torch.where(keep[:, None], torch.zeros_like(action), action)
+    return clip_action(action, max_action)
