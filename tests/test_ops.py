@@ -326,3 +326,16 @@ def test_chamfer_distance_of_a_row_does_not_depend_on_the_batch():
             a[i : i + 1], a_mask[i : i + 1], b[i : i + 1], b_mask[i : i + 1]
         )
         assert torch.equal(alone, batched[i : i + 1]), i
+
+
+@pytest.mark.parametrize("channels", [1, 4, 13])
+def test_unique_rows_equals_torch_unique(channels):
+    g = torch.Generator().manual_seed(channels)
+    rows = torch.randn(60, channels, generator=g)
+    rows[::5, 0] = 0.0  # ties in the leading column, decided by the later ones
+    x = rows[torch.randint(0, 60, (500,), generator=g)]
+    unique, inverse = ops.unique_rows(x)
+    ref_unique, ref_inverse = torch.unique(x, dim=0, return_inverse=True)
+    assert torch.equal(unique, ref_unique)
+    assert torch.equal(inverse, ref_inverse)
+    assert torch.equal(unique[inverse], x)

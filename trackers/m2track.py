@@ -59,6 +59,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from trackers import ops
 from trackers.base import Tracker, TrackerConfig
 from trackers.layers import MLP
 from trackers.registry import register
@@ -392,7 +393,7 @@ class M2Track(Tracker):
             # one sample on the fast eval path: resampling repeats points, and every layer is
             # per point until a max-pool, so each distinct row is computed once (exact); the
             # time channel keeps the two frames' rows apart
-            unique, inverse = torch.unique(cloud[0], dim=0, return_inverse=True)
+            unique, inverse = ops.unique_rows(cloud[0])
             cloud = unique[None]
         is_prev = cloud[..., 3] == TIME_PREVIOUS  # (B, N)
         seg_out = self.seg(cloud)

@@ -9,7 +9,8 @@ integer or comparison based; distances are computed the same way on both).
 * neighbourhoods: :func:`ball_query` (PointNet++ semantics; :func:`ball_query_pairs` lists its
   real hits), :func:`knn` (any dimension: coordinates or features), :func:`pairwise_sqdist`;
 * set distances: :func:`chamfer_distance` between masked point sets;
-* indexing: :func:`gather` / :func:`group`; copies of a point: :func:`first_copy`.
+* indexing: :func:`gather` / :func:`group`; copies of a point: :func:`first_copy`; distinct
+  rows: :func:`unique_rows`.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ __all__ = [
     "knn",
     "pairwise_sqdist",
     "random_order",
+    "unique_rows",
 ]
 
 _MASK32 = 0xFFFFFFFF
@@ -188,6 +190,24 @@ def first_copy(xyz: torch.Tensor) -> torch.Tensor:
     starts[:, 1:] = (ordered[:, 1:] != ordered[:, :-1]).any(-1)
     run_start = torch.where(starts, pos, torch.zeros_like(pos)).cummax(dim=1).values
     return torch.empty_like(order).scatter_(1, order, order.gather(1, run_start))
+
+
+def unique_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The distinct rows of ``x (N, C)`` in lexicographic order ``(U, C)`` and the index of each
+    row among them ``(N,)`` int64: ``torch.unique(x, dim=0, return_inverse=True)``, the same
+    values, by ``C`` stable sorts of one column each (torch's ``unique_dim`` compares rows one
+    pair at a time on CPU: 3 ms for 2,048 rows against 0.3 ms).
+    """
+    n, c = x.shape
+    order = torch.sort(x[:, c - 1], stable=True).indices
+    for col in range(c - 2, -1, -1):  # least significant column first: lexicographic
+        key = x[:, col].index_select(0, order)
+        order = order.index_select(0, torch.sort(key, stable=True).indices)
+    rows = x.index_select(0, order)
+    new = torch.ones(n, dtype=torch.bool, device=x.device)
+    new[1:] = (rows[1:] != rows[:-1]).any(1)
+    inverse = torch.empty_like(order).scatter_(0, order, new.cumsum(0) - 1)
+    return rows[new], inverse
 
 
 def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Tensor:
