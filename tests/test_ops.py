@@ -339,3 +339,37 @@ def test_unique_rows_equals_torch_unique(channels):
     assert torch.equal(unique, ref_unique)
     assert torch.equal(inverse, ref_inverse)
     assert torch.equal(unique[inverse], x)
+
+
+def _fps_before(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Tensor:
+    """``ops.farthest_point_sample`` as it was before the compiled loop (the reference)."""
+    b, npts, _ = xyz.shape
+    mind = torch.full((b, npts), float("inf"), dtype=xyz.dtype)
+    cur = torch.full((b,), start, dtype=torch.long)
+    picks = []
+    for _ in range(n):
+        picks.append(cur)
+        centre = torch.gather(xyz, 1, cur.view(b, 1, 1).expand(b, 1, 3))
+        torch.minimum(mind, (xyz - centre).square_().sum(-1), out=mind)
+        cur = mind.argmax(dim=1)
+    return torch.stack(picks, dim=1)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_farthest_point_sample_equals_the_previous_implementation(compiled, monkeypatch):
+    if compiled and ops._fps_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    if not compiled:
+        monkeypatch.setattr(ops, "_fps_kernel", lambda: None)
+    g = torch.Generator().manual_seed(0)
+    for trial in range(24):
+        b, n = 1 + trial % 3, (7, 100, 1024, 513)[trial % 4]
+        xyz = torch.rand(b, n, 3, generator=g) * torch.tensor([9.0, 6.0, 3.0])
+        if trial % 2:  # ties: a coarse grid of coordinates, every point twice
+            xyz = (xyz * 2).round() / 2
+            xyz[:, n // 2 :] = xyz[:, : n - n // 2].clone()
+        k, start = max(1, n // 2), trial % 3
+        np.testing.assert_array_equal(
+            ops.farthest_point_sample(xyz, k, start).numpy(), _fps_before(xyz, k, start).numpy()
+        )
+    assert ops.farthest_point_sample(xyz, 0).shape == (b, 0)
