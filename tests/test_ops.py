@@ -207,6 +207,7 @@ def test_hash_order_spreads_duplicates_like_a_random_permutation():
 @pytest.mark.parametrize("radius,k", [(0.15, 8), (0.3, 32), (10.0, 4), (0.05, 2)])
 def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, dense_pairs, monkeypatch):
     monkeypatch.setattr(ops, "_DENSE_PAIRS", dense_pairs)
+    monkeypatch.setattr(ops, "_GRID_SHARE", 0)  # the grid even where its candidates are many
     xyz = _points(n=200, seed=4)
     xyz[:, 100:130] = xyz[:, 60:90]  # copies: equal keys in the sorted grid cells
     centres = torch.cat(
@@ -254,9 +255,10 @@ def test_hash_orders_of_several_clouds_equal_one_call_each():
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_ball_query_grid_cells_find_every_hit(seed):
+def test_ball_query_grid_cells_find_every_hit(seed, monkeypatch):
     """The grid path against every pair, on clouds with points on cell boundaries, exactly one
     radius apart, copies and centres outside the cloud."""
+    monkeypatch.setattr(ops, "_GRID_SHARE", 0)  # the grid even where its candidates are many
     g = torch.Generator().manual_seed(seed)
     radius, k = [0.3, 0.5, 0.7, 0.05, 2.0, 0.3][seed], [32, 16, 8, 4, 64, 1][seed]
     xyz = (torch.rand(2, 300, 3, generator=g) - 0.5) * 6
