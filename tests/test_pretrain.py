@@ -320,3 +320,18 @@ def test_ema_run_validates_and_exports_the_average_and_resumes_exactly(tmp_path)
         _run(tmp_path / "cut", epochs=3, resume=True)
     with pytest.raises(ConfigError, match=r"ema_decay=1\.0: must be in \[0, 1\)"):
         config_from_dict({"ema_decay": 1.0})
+
+
+def test_loader_workers_train_the_same_bytes(tmp_path):
+    """Samples depend on (seed, epoch, index) only, so building them in DataLoader worker
+    processes (``--num-workers``, the cheap way to take sample building off the training
+    thread) trains the same weights bit for bit as building them in the trainer's process."""
+    from test_pretrain_support import train_slim_tracker
+
+    for workers in (0, 1):
+        train_slim_tracker(
+            tmp_path / str(workers), "p2b", epochs=2, iters_per_epoch=2, num_workers=workers
+        )
+    a, b = _weights(tmp_path / "0" / "last.pt"), _weights(tmp_path / "1" / "last.pt")
+    for k in a:
+        assert torch.equal(a[k], b[k]), k

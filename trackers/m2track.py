@@ -61,7 +61,7 @@ from torch import nn
 
 from trackers import ops
 from trackers.base import Tracker, TrackerConfig
-from trackers.layers import MLP
+from trackers.layers import MLP, max_pool
 from trackers.registry import register
 
 __all__ = ["M2Track", "M2TrackConfig", "box_cloud", "motion_cloud", "prepare_motion_observation"]
@@ -123,7 +123,7 @@ class MiniPointNet(nn.Module):
         self.hidden = MLP([point[-1], *hidden])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.hidden(self.point(x).amax(dim=1))
+        return self.hidden(max_pool(self.point(x), 1))
 
 
 class SegPointNet(nn.Module):
@@ -140,7 +140,7 @@ class SegPointNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         local = self.local(x)
-        pooled = self.glob(local).amax(dim=1)  # (B, C_g)
+        pooled = max_pool(self.glob(local), 1)  # (B, C_g)
         # the head's first Linear on [local; pooled] = W_l local + W_g pooled: the pooled part
         # once per sample instead of once per point
         w, b = self.head.linear_params(0)
