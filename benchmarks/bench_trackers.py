@@ -209,7 +209,9 @@ def moving_observations(count: int, keys: tuple[str, ...]) -> list[dict[str, np.
     return out
 
 
-def shipped_rates(files: list[str], count: int, repeats: int) -> dict[str, float]:
+def shipped_rates(
+    files: list[str], count: int, repeats: int, clock: str = "wall"
+) -> dict[str, float]:
     """Batch-1 frames/s of ``act`` (as shipped) and of the network alone for each file."""
     from training.evaluate import observation_keys_for
 
@@ -229,19 +231,20 @@ def shipped_rates(files: list[str], count: int, repeats: int) -> dict[str, float
                 for b in batches:
                     m.eval_forward(b)
 
-        rates[f"{name} act"] = count / best_seconds(act, repeats)
-        rates[f"{name} network"] = count / best_seconds(network, repeats)
+        rates[f"{name} act"] = count / best_seconds(act, repeats, clock=clock)
+        rates[f"{name} network"] = count / best_seconds(network, repeats, clock=clock)
     return rates
 
 
-def ops_rates(repeats: int) -> dict[str, float]:
+def ops_rates(repeats: int, clock: str = "wall") -> dict[str, float]:
     """Calls/s of FPS 1024 -> 512 and of the ball query (512 x 1024, r 0.3, k 32), batch 1."""
     g = torch.Generator().manual_seed(0)
     x = torch.rand(1, 1024, 3, generator=g) * torch.tensor([9.0, 6.0, 3.0])
     return {
-        "FPS 1024->512 b1": 1 / best_seconds(lambda: ops.farthest_point_sample(x, 512), repeats),
+        "FPS 1024->512 b1": 1
+        / best_seconds(lambda: ops.farthest_point_sample(x, 512), repeats, clock=clock),
         "ball query b1": 1
-        / best_seconds(lambda: ops.ball_query_pairs(0.3, 32, x, x[:, :512]), repeats),
+        / best_seconds(lambda: ops.ball_query_pairs(0.3, 32, x, x[:, :512]), repeats, clock=clock),
     }
 
 
@@ -291,9 +294,9 @@ def main(argv: list[str] | None = None) -> int:
     def measure() -> dict[str, float]:
         rates = {}
         if "shipped" in sections:
-            rates.update(shipped_rates(files, args.observations, args.repeats))
+            rates.update(shipped_rates(files, args.observations, args.repeats, args.clock))
         if "ops" in sections:
-            rates.update(ops_rates(max(args.repeats, 5)))
+            rates.update(ops_rates(max(args.repeats, 5), args.clock))
         return rates
 
     return run(args, measure, "per s")

@@ -95,7 +95,9 @@ def measure(args, names: list[str], modes: list[str], steps: int) -> dict[str, f
             ).validate()
             trainer = Trainer(cfg, train_data=data, val_fn=False)
             trainer.train_epoch()  # warm-up
-            seconds = best_seconds(trainer.train_epoch, args.repeats, warmup=0, sync=sync)
+            seconds = best_seconds(
+                trainer.train_epoch, args.repeats, warmup=0, sync=sync, clock=args.clock
+            )
             tag = {"none": "-U", "decorrelation": "-W", "sam": "-S"}[mode]
             rates[f"{name}{tag} train"] = steps * args.batch / seconds
     return rates
