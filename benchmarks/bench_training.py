@@ -19,8 +19,6 @@ timed to the device's completion; the samples come from ``--workers`` DataLoader
 
 from __future__ import annotations
 
-import time
-
 import torch
 from baseline import best_seconds, parser, run, use_code_root
 
@@ -76,10 +74,8 @@ def measure(args, names: list[str], modes: list[str], steps: int) -> dict[str, f
         common = {"recipe": args.recipe, "tracker_config": tracker_config(name, args.config)}
         data = sample_data(args.data, name, common)
         n = min(len(data), 64 if args.quick else 256)
-        start = time.perf_counter()
-        for i in range(n):
-            data[i]
-        rates[f"{name} samples built"] = n / (time.perf_counter() - start)
+        build = best_seconds(lambda d=data, n=n: [d[i] for i in range(n)], 1, 0, clock=args.clock)
+        rates[f"{name} samples built"] = n / build
         for mode in modes:
             cfg = TrainConfig(
                 tracker=name,
