@@ -1,40 +1,42 @@
-"""Tracker benchmark: parameters, forward time at batch 1 and 32, frames/s, a training step, and
-farthest-point sampling / ball query against naive references.
+"""Tracker benchmark: the shipped kitti-1 files' ``act`` and network, randomly initialised
+models' forward at batch 1 and 32, a training step, and farthest-point sampling / ball query
+against naive references.
 
-    python benchmarks/bench_trackers.py [--quick] [--threads 2] [--device cpu|cuda]
-                                        [--env-steps 300] [--trackers p2b m2track]
-                                        [--model-size default|slim]
+    python benchmarks/bench_trackers.py [--quick] [--threads 1] [--device cpu|cuda]
+        [--sections shipped,random,eval,ops] [--files kitti1|NAME,...] [--observations 24]
+        [--env-steps 300] [--trackers p2b m2track] [--model-size default|slim]
+        [--baseline REV [--rounds 3]]
 
-Inputs are synthetic (``trackers.toy.toy_batch``: a box-shaped target on a ground plane, the
-contract's 512 / 1024 points; M2-Track's previous frame is the search region shifted by 0.4 m).
-Untrained weights: M2-Track's eval cost depends on how many points its segmentation keeps
-(the mini PointNets pool only those), so a trained model's time differs. Forward times are
-eval mode under ``torch.inference_mode``; "act" adds observation validation and the numpy
-round trip. The machine's load average is printed because other processes share the CPU;
-"CPU" is this process's CPU time per call (all threads), which contention inflates far less
-than wall time. ``--env-steps N`` also times ``act`` on N observations of the synthetic env
-(``preset="small"``, test split, KITTI-1 setting; the intended use: padded templates, sparse
-neighbourhoods), each tracker acting on its own.
+``shipped``: for every shipped kitti-1 checkpoint (``--files``), frames/s of a batch-1 ``act``
+as shipped (hold and re-ranking included) and of its network alone (``eval_forward``), over
+``--observations`` recorded observations of moving targets (synthetic ``small`` world, test
+split, kitti-1 setting, driven by the ``constant_velocity`` baseline: the same observations for
+every file and every commit; a frame counts as moving when its ground-truth box moved more than
+0.2 m), best of ``--repeats`` passes. ``ops``: FPS 1024 -> 512 and the ball query, calls/s.
+These two sections are what ``--baseline REV`` compares (``benchmarks/baseline.py``).
 
-Eval modes (``--eval-batch B``, default 8 as ``pointtrack eval --num-envs 8``): for each shipped
+``random`` (toy inputs from ``trackers.toy.toy_batch``, untrained weights; M2-Track's eval cost
+depends on how many points its segmentation keeps, so a trained model's time differs): forward
+times in eval mode under ``torch.inference_mode``; "act" adds observation validation and the
+numpy round trip; "CPU" is this process's CPU time per call. ``--env-steps N`` also times
+``act`` on N synthetic-env observations, each tracker acting on its own.
+
+``eval`` (``--eval-batch B``, default 8 as ``pointtrack eval --num-envs 8``): for each shipped
 ``-u`` checkpoint, milliseconds per frame of an eval forward of ``B`` observations (half of them
 env-like padded clouds) as shipped (fast path, batch-invariant: one sample at a time), batched
-(``batch_invariant = False``: one forward of ``B``, the behaviour before batch invariance) and on
-the plain path (``fast_eval = False``, batch-invariant): the cost of batch invariance and the
-gain of the fast path.
+(``batch_invariant = False``) and on the plain path (``fast_eval = False``).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 import time
-from pathlib import Path
 
+import numpy as np
 import torch
+from baseline import best_seconds, parser, run, use_code_root
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+use_code_root()
 
 import trackers  # noqa: E402
 from trackers import ops  # noqa: E402
@@ -183,35 +185,131 @@ def eval_modes(bsz: int, reps: int, device: torch.device, sync) -> None:
         )
 
 
+def moving_observations(count: int, keys: tuple[str, ...]) -> list[dict[str, np.ndarray]]:
+    """``count`` observations of moving targets (see the module doc), in a fixed order."""
+    from envs.tracking_env import make_synthetic_env
+    from trackers.baselines import ConstantVelocity
+
+    env = make_synthetic_env(preset="small", split="test", setting="kitti-1", observation_keys=keys)
+    policy = ConstantVelocity(init="points")
+    out: list[dict[str, np.ndarray]] = []
+    for tracklet in range(env.num_tracklets):
+        obs, _ = env.reset(seed=tracklet, options={"tracklet": tracklet})
+        prev_gt, done = None, False
+        while not done and len(out) < count:
+            following, _, terminated, truncated, info = env.step(policy.act(obs))
+            gt = info["gt_box"]  # the box of the frame ``obs`` showed
+            if prev_gt is not None and np.linalg.norm(gt[:3] - prev_gt[:3]) > 0.2:
+                out.append(obs)
+            obs, prev_gt, done = following, gt, terminated or truncated
+        if len(out) >= count:
+            break
+    if len(out) < count:
+        raise SystemExit(f"only {len(out)} moving observations in the small test split")
+    return out
+
+
+def shipped_rates(
+    files: list[str], count: int, repeats: int, clock: str = "wall"
+) -> dict[str, float]:
+    """Batch-1 frames/s of ``act`` (as shipped) and of the network alone for each file."""
+    from training.evaluate import observation_keys_for
+
+    models = {name: trackers.load(name) for name in files}
+    observations = moving_observations(count, observation_keys_for(list(models.values())))
+    rates = {}
+    for name, model in models.items():
+        obs = observations
+        prepared = [model.prepare(o)[0] for o in obs]
+
+        def act(m=model, obs=obs):
+            for o in obs:
+                m.act(o)
+
+        def network(m=model, batches=prepared):
+            with torch.no_grad():
+                for b in batches:
+                    m.eval_forward(b)
+
+        rates[f"{name} act"] = count / best_seconds(act, repeats, clock=clock)
+        rates[f"{name} network"] = count / best_seconds(network, repeats, clock=clock)
+    return rates
+
+
+def ops_rates(repeats: int, clock: str = "wall") -> dict[str, float]:
+    """Calls/s of FPS 1024 -> 512 and of the ball query (512 x 1024, r 0.3, k 32), batch 1."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(1, 1024, 3, generator=g) * torch.tensor([9.0, 6.0, 3.0])
+    return {
+        "FPS 1024->512 b1": 1
+        / best_seconds(lambda: ops.farthest_point_sample(x, 512), repeats, clock=clock),
+        "ball query b1": 1
+        / best_seconds(lambda: ops.ball_query_pairs(0.3, 32, x, x[:, :512]), repeats, clock=clock),
+    }
+
+
+def kitti1_files() -> list[str]:
+    """The shipped kitti-1 checkpoints of P2B, BAT, GPT and M2-Track."""
+    kinds = ("p2b-", "bat-", "gpt-", "m2track-")
+    return [n for n in trackers.available("checkpoint") if "-kitti1" in n and n.startswith(kinds)]
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer repetitions, batch 8 not 32")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt", "m2track"])
-    parser.add_argument("--model-size", default="default", help="default | slim")
-    parser.add_argument(
+    p = parser(__doc__, threads=1, repeats=3)
+    p.add_argument("--quick", action="store_true", help="fewer repetitions, batch 8 not 32")
+    p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--sections",
+        help="comma-separated of shipped, random, eval, ops (default: all; with --baseline: "
+        "shipped,ops)",
+    )
+    p.add_argument("--files", default="kitti1", help="shipped files: kitti1 (all) or NAME,...")
+    p.add_argument("--observations", type=int, default=24, help="moving observations (shipped)")
+    p.add_argument("--trackers", nargs="*", default=["p2b", "bat", "gpt", "m2track"])
+    p.add_argument("--model-size", default="default", help="default | slim")
+    p.add_argument(
         "--eval-batch", type=int, default=8, help="batch of the eval-mode comparison (0: skip it)"
     )
-    parser.add_argument(
+    p.add_argument(
         "--env-steps",
         type=int,
         default=0,
         help="also time act() on this many synthetic-env observations",
     )
-    args = parser.parse_args(argv)
+    args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
+    default = "shipped,ops" if args.baseline or args.json_out else "shipped,random,eval,ops"
+    sections = set((args.sections or default).split(","))
+    unknown = sections - {"shipped", "random", "eval", "ops"}
+    if unknown:
+        raise SystemExit(f"--sections: unknown {sorted(unknown)}; valid: shipped,random,eval,ops")
+    files = kitti1_files() if args.files == "kitti1" else args.files.split(",")
+    print(
+        f"torch {torch.__version__}, {trackers.__file__}, threads {torch.get_num_threads()}, "
+        f"load average {os.getloadavg()[0]:.2f}"
+    )
+    if "random" in sections or "eval" in sections:
+        random_models(args, sections)
+
+    def measure() -> dict[str, float]:
+        rates = {}
+        if "shipped" in sections:
+            rates.update(shipped_rates(files, args.observations, args.repeats, args.clock))
+        if "ops" in sections:
+            rates.update(ops_rates(max(args.repeats, 5), args.clock))
+        return rates
+
+    return run(args, measure, "per s")
+
+
+def random_models(args, sections: set[str]) -> None:
+    """The ``random`` and ``eval`` sections (printed) and the ops against naive references."""
     device = torch.device(args.device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     reps = 3 if args.quick else 10
     big = 8 if args.quick else 32
-    print(
-        f"torch {torch.__version__}, device {device}, threads {torch.get_num_threads()}, "
-        f"load average {os.getloadavg()[0]:.2f}"
-    )
-
     results = {}
-    for name in args.trackers:
+    for name in args.trackers if "random" in sections else []:
         torch.manual_seed(0)
         model = trackers.make(name, **trackers.size_config(name, args.model_size))
         model = model.to(device).eval()
@@ -257,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
             + ", ".join(f"{n} {r['fps_b1'] / base:.2f}x" for n, r in results.items())
         )
 
-    if args.eval_batch > 0:
+    if "eval" in sections and args.eval_batch > 0:
         eval_modes(args.eval_batch, reps, device, sync)
 
     g = torch.Generator().manual_seed(0)
@@ -283,7 +381,6 @@ def main(argv: list[str] | None = None) -> int:
             f"{t_naive / t_fast:.0f}x); {t_pairs * 1e3:.2f} ms as the ragged pairs the "
             f"backbone uses in eval"
         )
-    return 0
 
 
 if __name__ == "__main__":

@@ -207,6 +207,7 @@ def test_hash_order_spreads_duplicates_like_a_random_permutation():
 @pytest.mark.parametrize("radius,k", [(0.15, 8), (0.3, 32), (10.0, 4), (0.05, 2)])
 def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, dense_pairs, monkeypatch):
     monkeypatch.setattr(ops, "_DENSE_PAIRS", dense_pairs)
+    monkeypatch.setattr(ops, "_GRID_SHARE", 0)  # the grid even where its candidates are many
     xyz = _points(n=200, seed=4)
     xyz[:, 100:130] = xyz[:, 60:90]  # copies: equal keys in the sorted grid cells
     centres = torch.cat(
@@ -254,9 +255,10 @@ def test_hash_orders_of_several_clouds_equal_one_call_each():
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_ball_query_grid_cells_find_every_hit(seed):
+def test_ball_query_grid_cells_find_every_hit(seed, monkeypatch):
     """The grid path against every pair, on clouds with points on cell boundaries, exactly one
     radius apart, copies and centres outside the cloud."""
+    monkeypatch.setattr(ops, "_GRID_SHARE", 0)  # the grid even where its candidates are many
     g = torch.Generator().manual_seed(seed)
     radius, k = [0.3, 0.5, 0.7, 0.05, 2.0, 0.3][seed], [32, 16, 8, 4, 64, 1][seed]
     xyz = (torch.rand(2, 300, 3, generator=g) - 0.5) * 6
@@ -326,3 +328,50 @@ def test_chamfer_distance_of_a_row_does_not_depend_on_the_batch():
             a[i : i + 1], a_mask[i : i + 1], b[i : i + 1], b_mask[i : i + 1]
         )
         assert torch.equal(alone, batched[i : i + 1]), i
+
+
+@pytest.mark.parametrize("channels", [1, 4, 13])
+def test_unique_rows_equals_torch_unique(channels):
+    g = torch.Generator().manual_seed(channels)
+    rows = torch.randn(60, channels, generator=g)
+    rows[::5, 0] = 0.0  # ties in the leading column, decided by the later ones
+    x = rows[torch.randint(0, 60, (500,), generator=g)]
+    unique, inverse = ops.unique_rows(x)
+    ref_unique, ref_inverse = torch.unique(x, dim=0, return_inverse=True)
+    assert torch.equal(unique, ref_unique)
+    assert torch.equal(inverse, ref_inverse)
+    assert torch.equal(unique[inverse], x)
+
+
+def _fps_before(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Tensor:
+    """``ops.farthest_point_sample`` as it was before the compiled loop (the reference)."""
+    b, npts, _ = xyz.shape
+    mind = torch.full((b, npts), float("inf"), dtype=xyz.dtype)
+    cur = torch.full((b,), start, dtype=torch.long)
+    picks = []
+    for _ in range(n):
+        picks.append(cur)
+        centre = torch.gather(xyz, 1, cur.view(b, 1, 1).expand(b, 1, 3))
+        torch.minimum(mind, (xyz - centre).square_().sum(-1), out=mind)
+        cur = mind.argmax(dim=1)
+    return torch.stack(picks, dim=1)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_farthest_point_sample_equals_the_previous_implementation(compiled, monkeypatch):
+    if compiled and ops._fps_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    if not compiled:
+        monkeypatch.setattr(ops, "_fps_kernel", lambda: None)
+    g = torch.Generator().manual_seed(0)
+    for trial in range(24):
+        b, n = 1 + trial % 3, (7, 100, 1024, 513)[trial % 4]
+        xyz = torch.rand(b, n, 3, generator=g) * torch.tensor([9.0, 6.0, 3.0])
+        if trial % 2:  # ties: a coarse grid of coordinates, every point twice
+            xyz = (xyz * 2).round() / 2
+            xyz[:, n // 2 :] = xyz[:, : n - n // 2].clone()
+        k, start = max(1, n // 2), trial % 3
+        np.testing.assert_array_equal(
+            ops.farthest_point_sample(xyz, k, start).numpy(), _fps_before(xyz, k, start).numpy()
+        )
+    assert ops.farthest_point_sample(xyz, 0).shape == (b, 0)

@@ -399,3 +399,18 @@ def test_logger_choice_is_checked_before_training(tmp_path, capsys, monkeypatch)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and 'pip install "pointtrack[tensorboard]"' in err
     assert not out.exists()
+
+
+def test_loader_workers_train_the_same_bytes(tmp_path):
+    """Samples depend on (seed, epoch, index) only, so building them in DataLoader worker
+    processes (``--num-workers``, the cheap way to take sample building off the training
+    thread) trains the same weights bit for bit as building them in the trainer's process."""
+    from test_pretrain_support import train_slim_tracker
+
+    for workers in (0, 1):
+        train_slim_tracker(
+            tmp_path / str(workers), "p2b", epochs=2, iters_per_epoch=2, num_workers=workers
+        )
+    a, b = _weights(tmp_path / "0" / "last.pt"), _weights(tmp_path / "1" / "last.pt")
+    for k in a:
+        assert torch.equal(a[k], b[k]), k

@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 from trackers import ops
-from trackers.layers import MLP, grouped_max
+from trackers.layers import MLP, grouped_max, max_pool
 
 __all__ = ["Backbone", "BackboneConfig", "SetAbstraction"]
 
@@ -114,7 +114,7 @@ class SetAbstraction(nn.Module):
         per_point, per_centre = self.point_terms(xyz, feats, centres)
         idx = ops.ball_query(self.radius, self.k, xyz, centres)
         pre = ops.group(per_point, idx) - per_centre[:, :, None, :]  # (B, n, k, C1)
-        return centres, self.mlp.forward_from(0, pre).amax(dim=2)
+        return centres, max_pool(self.mlp.forward_from(0, pre), 2)
 
     def ragged(
         self,

@@ -28,7 +28,7 @@ from envs.geometry import box_corners_torch
 from trackers import ops
 from trackers.base import MatchingConfig, MatchingTracker
 from trackers.head import masked_mean, smooth_l1
-from trackers.layers import MLP
+from trackers.layers import MLP, max_pool
 from trackers.p2b import P2B
 from trackers.registry import register
 
@@ -86,7 +86,7 @@ class BoxAwareFusion(nn.Module):
         pre = ops.group(per_t, nbr)  # (B, M_S, k, H)
         if self.use_search_feature:
             pre = pre + (s_feat @ w[:, t_in.shape[-1] :].t())[:, :, None, :]
-        z = self.post(self.mlp.forward_from(0, pre).amax(dim=2))
+        z = self.post(max_pool(self.mlp.forward_from(0, pre), 2))
         return z, s_bc
 
 

@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from trackers import ops
-from trackers.layers import MLP, grouped_max
+from trackers.layers import MLP, grouped_max, max_pool
 
 __all__ = ["HeadConfig", "VotingHead", "head_losses", "proposal_labels", "smooth_l1"]
 
@@ -102,7 +102,7 @@ class VotingHead(nn.Module):
         if self.training or not self.fast_eval:  # dense: BatchNorm statistics over every slot
             idx = ops.ball_query(radius, k, vote_xyz, centres)  # (B, P, k)
             pre = ops.group(per_vote, idx) - per_centre[:, :, None, :]  # (B, P, k, V)
-            cluster = self.aggregate.forward_from(0, pre).amax(dim=2)  # (B, P, V)
+            cluster = max_pool(self.aggregate.forward_from(0, pre), 2)  # (B, P, V)
         else:  # the real cluster members only: the same max, less work
             group, point = ops.ball_query_pairs(radius, k, vote_xyz, centres)
             cluster = grouped_max(self.aggregate, per_vote, per_centre, group, point)

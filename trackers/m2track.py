@@ -59,8 +59,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from trackers import ops
 from trackers.base import Tracker, TrackerConfig
-from trackers.layers import MLP
+from trackers.layers import MLP, max_pool
 from trackers.registry import register
 
 __all__ = ["M2Track", "M2TrackConfig", "box_cloud", "motion_cloud", "prepare_motion_observation"]
@@ -122,7 +123,7 @@ class MiniPointNet(nn.Module):
         self.hidden = MLP([point[-1], *hidden])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.hidden(self.point(x).amax(dim=1))
+        return self.hidden(max_pool(self.point(x), 1))
 
 
 class SegPointNet(nn.Module):
@@ -139,7 +140,7 @@ class SegPointNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         local = self.local(x)
-        pooled = self.glob(local).amax(dim=1)  # (B, C_g)
+        pooled = max_pool(self.glob(local), 1)  # (B, C_g)
         # the head's first Linear on [local; pooled] = W_l local + W_g pooled: the pooled part
         # once per sample instead of once per point
         w, b = self.head.linear_params(0)
@@ -392,7 +393,7 @@ class M2Track(Tracker):
             # one sample on the fast eval path: resampling repeats points, and every layer is
             # per point until a max-pool, so each distinct row is computed once (exact); the
             # time channel keeps the two frames' rows apart
-            unique, inverse = torch.unique(cloud[0], dim=0, return_inverse=True)
+            unique, inverse = ops.unique_rows(cloud[0])
             cloud = unique[None]
         is_prev = cloud[..., 3] == TIME_PREVIOUS  # (B, N)
         seg_out = self.seg(cloud)
