@@ -326,15 +326,15 @@ def test_selection_scores_a_candidate_with_its_options(tmp_path, monkeypatch, to
 
 
 def test_residual_tracker_keeps_its_base_options(tmp_path):
-    from training.finetune import ResidualTracker, _residual_policy
+    from training.rl.wrappers import ResidualTracker, residual_policy
 
     base = _slim("p2b", V2_P2B)
-    tuned = ResidualTracker(base, _residual_policy(-2.0), name="p2b-residual")
+    tuned = ResidualTracker(base, residual_policy(-2.0), name="p2b-residual")
     assert tuned.env_options == V2_P2B
     path = tuned.save(tmp_path / "residual.safetensors")
     again = ResidualTracker.load(path)
     assert again.env_options == again.base.env_options == V2_P2B
-    plain = ResidualTracker(_slim(), _residual_policy(-2.0)).save(tmp_path / "plain.safetensors")
+    plain = ResidualTracker(_slim(), residual_policy(-2.0)).save(tmp_path / "plain.safetensors")
     assert "env_options" not in _metadata(plain)
     assert ResidualTracker.load(plain).env_options == {}
     assert np.allclose(again.scale, tuned.scale)
@@ -342,7 +342,8 @@ def test_residual_tracker_keeps_its_base_options(tmp_path):
 
 def test_finetune_envs_use_the_base_trackers_options():
     """``pointtrack finetune`` trains (and val-checks) on the base tracker's options."""
-    from training.finetune import FinetuneConfig, train_env_factory
+    from training.rl.config import FinetuneConfig
+    from training.rl.run import train_env_factory
 
     cfg = FinetuneConfig(preset="tiny", clip_length=4)
     env = train_env_factory(cfg, V2_P2B)()

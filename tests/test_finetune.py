@@ -22,7 +22,10 @@ import torch
 
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
-from training import finetune as ft
+from training.rl import config as ftc
+from training.rl import run as ft
+from training.rl import state as fts
+from training.rl.wrappers import ResidualTracker
 from training.cli import main
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -34,7 +37,7 @@ def data():
     return make_toy_dataset(num_frames=8)
 
 
-def tiny_cfg(**kwargs) -> ft.FinetuneConfig:
+def tiny_cfg(**kwargs) -> ftc.FinetuneConfig:
     base = {
         "tracker": "p2b-kitti1-u",
         "timesteps": 32,
@@ -45,7 +48,7 @@ def tiny_cfg(**kwargs) -> ft.FinetuneConfig:
         "clip_length": 4,
         "warmup_rollouts": 1,
     }
-    return ft.FinetuneConfig(**{**base, **kwargs})
+    return ftc.FinetuneConfig(**{**base, **kwargs})
 
 
 def run(cfg, out, data, **kwargs):
@@ -83,39 +86,39 @@ def test_ppo_run_writes_an_ordinary_tracker_checkpoint(tmp_path, data):
         trackers.load(out / "snapshots/tracker-00000032.safetensors").state_dict(),
         tuned.state_dict(),
     )
-    _, _, _, meta = ft.load_state(out / "state.safetensors")
+    _, _, _, meta = fts.load_state(out / "state.safetensors")
     assert meta["finished"] and meta["timesteps"] == 32
 
 
 def test_out_dir_refusals_name_the_problem(tmp_path, data):
     out = tmp_path / "run"
     run(tiny_cfg(timesteps=8), out, data)
-    with pytest.raises(ft.FinetuneError, match="holds a finished run.*--resume.*--overwrite"):
+    with pytest.raises(ftc.FinetuneError, match="already holds a run.*--resume.*--overwrite"):
         run(tiny_cfg(timesteps=8), out, data)
     with pytest.raises(
-        ft.FinetuneError,
+        ftc.FinetuneError,
         match=r"another tracker or config \(gamma: saved 0.9, "
         r"given 0.5; tracker: saved 'p2b-kitti1-u', "
         r"given 'bat-kitti1-u'",
     ):
         run(tiny_cfg(timesteps=16, gamma=0.5, tracker="bat-kitti1-u"), out, data, resume=True)
-    with pytest.raises(ft.FinetuneError, match="nothing to resume"):
+    with pytest.raises(ftc.FinetuneError, match="nothing to resume"):
         run(tiny_cfg(), tmp_path / "empty", data, resume=True)
     with pytest.raises(
-        ft.FinetuneError, match="algo must be one of \\['ppo', 'group', 'residual'\\]"
+        ftc.FinetuneError, match="algo must be one of \\['ppo', 'group', 'residual'\\]"
     ):
         run(tiny_cfg(algo="sac"), tmp_path / "x", data)
     if not torch.cuda.is_available():
-        with pytest.raises(ft.FinetuneError, match="device 'cuda': CUDA is not available"):
+        with pytest.raises(ftc.FinetuneError, match="device 'cuda': CUDA is not available"):
             run(tiny_cfg(device="cuda"), tmp_path / "y", data)
     run(tiny_cfg(timesteps=8), out, data, overwrite=True)
     assert log_steps(out) == [8]
 
 
 def test_self_critical_run_trains_and_needs_one_step_returns(tmp_path, data):
-    with pytest.raises(ft.FinetuneError, match="self_critical.*set gamma=0 \\(got gamma=0.9\\)"):
+    with pytest.raises(ftc.FinetuneError, match="self_critical.*set gamma=0 \\(got gamma=0.9\\)"):
         run(tiny_cfg(baseline="self_critical"), tmp_path / "bad", data)
-    with pytest.raises(ft.FinetuneError, match="baseline must be one of \\['critic'"):
+    with pytest.raises(ftc.FinetuneError, match="baseline must be one of \\['critic'"):
         run(tiny_cfg(baseline="greedy"), tmp_path / "bad", data)
     out = tmp_path / "run"
     result = run(tiny_cfg(baseline="self_critical", gamma=0.0), out, data)
@@ -129,9 +132,9 @@ def test_self_critical_run_trains_and_needs_one_step_returns(tmp_path, data):
 
 
 def test_group_run_trains_resumes_and_refuses_what_does_not_apply(tmp_path, data):
-    with pytest.raises(ft.FinetuneError, match="group_size must be >= 2, got 1"):
+    with pytest.raises(ftc.FinetuneError, match="group_size must be >= 2, got 1"):
         run(tiny_cfg(algo="group", group_size=1), tmp_path / "bad", data)
-    with pytest.raises(ft.FinetuneError, match="baseline 'self_critical' does not apply"):
+    with pytest.raises(ftc.FinetuneError, match="baseline 'self_critical' does not apply"):
         run(tiny_cfg(algo="group", baseline="self_critical", gamma=0.0), tmp_path / "bad", data)
     out = tmp_path / "run"
     cfg = tiny_cfg(algo="group", group_size=4, timesteps=16, snapshot_every=2)
@@ -145,28 +148,28 @@ def test_group_run_trains_resumes_and_refuses_what_does_not_apply(tmp_path, data
     tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
     changed = [k for k, v in tuned.state_dict().items() if not torch.equal(v, base.state_dict()[k])]
     assert changed and all(k.startswith("head.") for k in changed)
-    with pytest.raises(ft.FinetuneError, match="group_size: saved 4, given 8"):
+    with pytest.raises(ftc.FinetuneError, match="group_size: saved 4, given 8"):
         run(dataclasses.replace(cfg, timesteps=48, group_size=8), out, data, resume=True)
 
 
 def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch):
     out = tmp_path / "run"
-    original = ft._PPORun.after_update
+    original = ft.PPORun.after_update
 
     def stop_after_two(self):
         original(self)
         if self.updates == 2:
             raise KeyboardInterrupt  # a kill right after the second checkpoint
 
-    monkeypatch.setattr(ft._PPORun, "after_update", stop_after_two)
+    monkeypatch.setattr(ft.PPORun, "after_update", stop_after_two)
     with pytest.raises(KeyboardInterrupt):
         run(tiny_cfg(), out, data)
-    monkeypatch.setattr(ft._PPORun, "after_update", original)
-    policy_sd, optim_sd, _, meta = ft.load_state(out / "state.safetensors")
+    monkeypatch.setattr(ft.PPORun, "after_update", original)
+    policy_sd, optim_sd, _, meta = fts.load_state(out / "state.safetensors")
     assert meta["timesteps"] == 16 and not meta["finished"]
     assert not (out / "tracker.safetensors").exists()
     # the state restores into a fresh policy exactly (optimizer moments included)
-    with pytest.raises(ft.FinetuneError, match="holds an unfinished run"):
+    with pytest.raises(ftc.FinetuneError, match="already holds a run"):
         run(tiny_cfg(), out, data)
     result = run(tiny_cfg(), out, data, resume=True)
     assert result.timesteps == 32 and result.updates == 4
@@ -174,7 +177,7 @@ def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch
     assert optim_sd["state"] and all(
         torch.isfinite(t).all() for e in optim_sd["state"].values() for t in e.values()
     )
-    assert set(policy_sd) == set(ft.load_state(out / "state.safetensors")[0])
+    assert set(policy_sd) == set(fts.load_state(out / "state.safetensors")[0])
     trackers.load(out / "tracker.safetensors")
 
 
@@ -182,15 +185,13 @@ def test_state_round_trips_policy_and_optimizer(tmp_path, data):
     out = tmp_path / "run"
     run(tiny_cfg(timesteps=16), out, data)
     cfg = tiny_cfg(timesteps=16)
-    r = ft._PPORun(
+    r = ft.PPORun(
         cfg,
         out,
         lambda: TrackingEnv(data, sampling="random"),
-        ft._read_meta(out / "state.safetensors"),
-        False,
-        print,
+        resume_meta=fts.read_state_meta(out / "state.safetensors"),
     )
-    policy_sd, optim_sd, _, _ = ft.load_state(out / "state.safetensors")
+    policy_sd, optim_sd, _, _ = fts.load_state(out / "state.safetensors")
     for k, v in r.policy.state_dict().items():
         assert torch.equal(v, policy_sd[k]), k
     restored = r.policy.optimizer.state_dict()
@@ -217,7 +218,7 @@ class NanAfter(gym.Wrapper):
 def test_nan_in_a_rollout_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path, data):
     out = tmp_path / "run"
     with pytest.raises(
-        ft.NonFiniteError,
+        ftc.NonFiniteError,
         match=r"non-finite rewards of the rollout at step 24 "
         r"\(update 2\).*last good checkpoint \(step 16\)",
     ):
@@ -227,20 +228,21 @@ def test_nan_in_a_rollout_stops_naming_the_step_and_keeps_the_last_good_checkpoi
             progress=False,
             make_env=lambda: NanAfter(TrackingEnv(data, sampling="random"), 10),
         )
-    _, _, _, meta = ft.load_state(out / "state.safetensors")
+    _, _, _, meta = fts.load_state(out / "state.safetensors")
     assert meta["timesteps"] == 16 and not meta["finished"]
     assert not (out / "tracker.safetensors").exists()
 
 
 def test_residual_variant_saves_safetensors_and_loads_in_eval(tmp_path, data):
-    from training.evaluate import evaluate, load_tracker
+    from training.evaluate import evaluate
+    from training.loading import load_tracker
 
     out = tmp_path / "res"
     run(tiny_cfg(algo="residual", timesteps=16, n_steps=8), out, data)
     assert not (out / "ppo.zip").exists()
-    tuned = ft.ResidualTracker.load(out)
+    tuned = ResidualTracker.load(out)
     again = load_tracker(str(out / "residual.safetensors"))  # what `pointtrack eval` calls
-    assert isinstance(again, ft.ResidualTracker)
+    assert isinstance(again, ResidualTracker)
     obs, _ = TrackingEnv(data).reset(seed=0)
     np.testing.assert_allclose(again.act(obs), tuned.act(obs), atol=1e-6)
     batch = {k: np.stack([v, v]) for k, v in obs.items()}
@@ -272,10 +274,10 @@ def test_a_crafted_ppo_zip_is_never_unpickled(tmp_path):
     _crafted_sb3_zip(run_dir / "ppo.zip", marker)
     (run_dir / "finetune.json").write_text(json.dumps({"tracker": "p2b-kitti1-u"}))
     with pytest.raises(ValueError, match="ppo.zip.*refused.*unpickles"):
-        ft.ResidualTracker.load(run_dir)
+        ResidualTracker.load(run_dir)
     with pytest.raises(ValueError, match="SB3 zips are refused"):
-        ft.ResidualTracker.load(run_dir / "ppo.zip")
-    from training.evaluate import load_tracker
+        ResidualTracker.load(run_dir / "ppo.zip")
+    from training.loading import load_tracker
 
     with pytest.raises((ValueError, FileNotFoundError)):
         load_tracker(str(run_dir / "ppo.zip"))
@@ -401,19 +403,19 @@ def test_sigkill_and_resume_through_the_cli(tmp_path):
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and child.poll() is None:
         state = out / "state.safetensors"
-        if state.exists() and ft._read_meta(state)["timesteps"] >= 16:
+        if state.exists() and fts.read_state_meta(state)["timesteps"] >= 16:
             break
         time.sleep(0.2)
     assert child.poll() is None, child.stderr.read().decode()
     child.send_signal(signal.SIGKILL)
     child.wait()
-    killed_at = ft._read_meta(out / "state.safetensors")["timesteps"]
+    killed_at = fts.read_state_meta(out / "state.safetensors")["timesteps"]
     assert killed_at < 64 and not (out / "tracker.safetensors").exists()
     done = subprocess.run([*args, "--resume"], cwd=REPO, env=env, capture_output=True, timeout=300)
     assert done.returncode == 0, done.stderr.decode()
     steps = log_steps(out)
     assert steps == sorted(set(steps)) and steps[-1] == 64 and steps[0] == 8
-    assert ft._read_meta(out / "state.safetensors")["finished"]
+    assert fts.read_state_meta(out / "state.safetensors")["finished"]
     trackers.load(out / "tracker.safetensors")
     assert not list(out.glob(".*tmp*"))
 
@@ -430,7 +432,7 @@ def test_every_finetune_flag_reaches_the_config():
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     dests = {a.dest for a in parser._actions}
-    fields = {f.name: f for f in dataclasses.fields(ft.FinetuneConfig)}
+    fields = {f.name: f for f in dataclasses.fields(ftc.FinetuneConfig)}
     assert set(fields) <= dests
     given = {
         "tracker": ("bat-kitti1-u", "bat-kitti1-u"),
