@@ -22,11 +22,11 @@ import torch
 
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
+from training.cli import main
 from training.rl import config as ftc
 from training.rl import run as ft
 from training.rl import state as fts
 from training.rl.wrappers import ResidualTracker
-from training.cli import main
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 REPO = Path(__file__).resolve().parents[1]

@@ -68,8 +68,6 @@ from training.checkpoint import (
 )
 from training.config import TrainConfig
 from training.losses import pooled_objective
-from training.sam import SAM
-from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.rundir import (
     TRAIN_LAYOUT,
     RunDirError,
@@ -78,6 +76,8 @@ from training.rundir import (
     remove_stale_temps,
     truncate_log,
 )
+from training.sam import SAM
+from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
 
 __all__ = [
