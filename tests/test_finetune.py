@@ -360,7 +360,7 @@ def test_cli_end_to_end_result_loads_and_evaluates(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["finetune", "--resume", "--out", str(out), "--gamma", "0.5", "--timesteps", "24"])
     assert exc.value.code == 2
-    assert "(gamma: saved 0.9, given 0.5)" in capsys.readouterr().err
+    assert "(--gamma: saved 0.9, given 0.5)" in capsys.readouterr().err
     assert (
         main(
             [
@@ -470,11 +470,13 @@ def test_every_finetune_flag_reaches_the_config():
         "save_every": ("3", 3),
         "snapshot_every": ("4", 4),
         "val_max_tracklets": ("5", 5),
+        "logger": ("csv,json", "csv,json"),
+        "untrained": (None, True),  # a switch
     }
     assert set(given) == set(fields)
     argv = []
     for dest, (text, _) in given.items():
-        argv += ["--" + dest.replace("_", "-"), text]
+        argv += ["--" + dest.replace("_", "-"), *([] if text is None else [text])]
     cfg = build_config(parser.parse_args(argv))
     for dest, (_, expected) in given.items():
         value = getattr(cfg, dest)

@@ -8,12 +8,16 @@ Errors name config fields (``group_size must be ...``) and carry them in
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
-from collections.abc import Sequence
+import typing
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
+import yaml
 
 from envs.tracking_env import REWARDS
 from training.rl.policy import ACTION_MODES, CRITICS, TRAIN_PARTS
@@ -26,12 +30,26 @@ __all__ = [
     "FinetuneConfig",
     "FinetuneError",
     "NonFiniteError",
+    "config_from_values",
+    "read_hyperparams",
 ]
 
 ALGOS = ("ppo", "group", "residual")
 BASELINES = ("critic", "self_critical")
 #: Config fields that may change on ``--resume`` (how long and where it runs, not what).
-RESUMABLE = ("timesteps", "device", "threads", "save_every", "snapshot_every", "val_max_tracklets")
+RESUMABLE = (
+    "timesteps",
+    "device",
+    "threads",
+    "save_every",
+    "snapshot_every",
+    "val_max_tracklets",
+    "logger",
+)
+#: SB3 logger outputs (``stable_baselines3.common.logger.configure``) a run may write
+LOGGER_FORMATS = ("tensorboard", "csv", "json", "stdout")
+#: RL Zoo hyper-parameter names read as the config's fields (``--config FILE.yml``)
+ZOO_NAMES = {"n_timesteps": "timesteps", "n_envs": "num_envs", "learning_rate": "lr"}
 #: the largest ``group_size``: each state's samples are scored one env call each, so a larger
 #: group only costs time (and a huge one the memory of its ``(S, K, 4)`` rollout arrays)
 MAX_GROUP_SIZE = 1024
@@ -93,6 +111,10 @@ class FinetuneConfig:
     save_every: int = 1  # updates between resume checkpoints
     snapshot_every: int = 0  # updates between tracker snapshots (0: none)
     val_max_tracklets: int = 8
+    #: SB3 logger outputs under OUT/sb3, comma-separated (LOGGER_FORMATS; "": log.jsonl only)
+    logger: str = ""
+    #: accept a learned tracker's bare name (a random initialisation from ``seed``)
+    untrained: bool = False
 
     def problems(self) -> list[tuple[str, str]]:
         """``(field, message)`` for every offending field (empty when the config is valid)."""
@@ -157,6 +179,19 @@ class FinetuneConfig:
             errors.append(("device", f"device {self.device!r}: CUDA is not available here"))
         elif not str(self.device).startswith(("cpu", "cuda")):
             errors.append(("device", f"device must be cpu or cuda[:N], got {self.device!r}"))
+        for kind in self.logger_formats:
+            if kind not in LOGGER_FORMATS:
+                errors.append(
+                    ("logger", f"logger must list some of {list(LOGGER_FORMATS)}, got {kind!r}")
+                )
+            elif kind == "tensorboard" and importlib.util.find_spec("tensorboard") is None:
+                errors.append(
+                    (
+                        "logger",
+                        "logger 'tensorboard' needs the tensorboard package: "
+                        "pip install 'pointtrack[tensorboard]'",
+                    )
+                )
         if self.target_kl is not None and not self.target_kl > 0:
             errors.append(("target_kl", f"target_kl must be > 0 (or None), got {self.target_kl}"))
         return errors
@@ -168,5 +203,92 @@ class FinetuneConfig:
         if errors:
             raise FinetuneError("; ".join(m for _, m in errors), [f for f, _ in errors])
 
+    @property
+    def logger_formats(self) -> list[str]:
+        """:attr:`logger` as a list (empty entries dropped)."""
+        return [kind.strip() for kind in self.logger.split(",") if kind.strip()]
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
+
+
+_HINTS = typing.get_type_hints(FinetuneConfig)
+
+
+def _coerced(name: str, value: Any) -> Any:
+    """``value`` as field ``name``'s type (an int for a float field, a YAML string such as
+    ``1e-5`` for a number); ``TypeError`` with the reason otherwise."""
+    hint = _HINTS[name]
+    options = typing.get_args(hint) or (hint,)
+    if value is None:
+        if type(None) in options:
+            return None
+        raise TypeError("may not be null")
+    kind = next(t for t in options if t is not type(None))
+    if kind is bool:
+        if isinstance(value, bool):
+            return value
+        raise TypeError("must be true or false")
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise TypeError("must be an integer")
+        return value
+    if kind is float:
+        try:  # YAML 1.1 reads 1e-5 (no dot) as a string
+            if isinstance(value, bool) or not isinstance(value, int | float | str):
+                raise ValueError
+            return float(value)
+        except ValueError:
+            raise TypeError("must be a number") from None
+    if not isinstance(value, str):
+        raise TypeError("must be a string")
+    return value
+
+
+def config_from_values(
+    values: Mapping[str, Any], base: FinetuneConfig | None = None, *, where: str = ""
+) -> FinetuneConfig:
+    """``base`` (default: the defaults) with ``values`` (field name -> value) applied, each
+    coerced to its field's type; :class:`FinetuneError` naming every unknown key or bad value
+    (prefixed by ``where``, e.g. the file). The result is not yet :meth:`validated
+    <FinetuneConfig.validate>`."""
+    errors: list[tuple[str, str]] = []
+    known = {f.name for f in dataclasses.fields(FinetuneConfig)}
+    cfg = dataclasses.replace(base) if base is not None else FinetuneConfig()
+    for key, value in values.items():
+        if key not in known:
+            errors.append((key, f"unknown key {key!r} (valid: {', '.join(sorted(known))})"))
+            continue
+        try:
+            setattr(cfg, key, _coerced(key, value))
+        except TypeError as exc:
+            errors.append((key, f"{key}={value!r}: {exc}"))
+    if errors:
+        prefix = f"{where}: " if where else ""
+        raise FinetuneError(prefix + "; ".join(m for _, m in errors), [k for k, _ in errors])
+    return cfg
+
+
+def read_hyperparams(path: str | Path) -> dict[str, Any]:
+    """An RL Zoo-style hyper-parameter file: a YAML mapping of :class:`FinetuneConfig` fields
+    (the RL Zoo's ``n_timesteps``, ``n_envs`` and ``learning_rate`` read as ``timesteps``,
+    ``num_envs`` and ``lr``). :class:`FinetuneError` naming the file when it cannot be read,
+    is not a mapping, or names a field twice."""
+    path = Path(path)
+    try:
+        values = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise FinetuneError(f"cannot read the config file {path}: {exc}") from None
+    if values is None:
+        return {}
+    if not isinstance(values, dict):
+        raise FinetuneError(
+            f"config file {path}: expected a mapping of config keys, got {type(values).__name__}"
+        )
+    out: dict[str, Any] = {}
+    for key, value in values.items():
+        name = ZOO_NAMES.get(str(key), str(key))
+        if name in out:
+            raise FinetuneError(f"config file {path}: {name!r} is given twice ({key!r})", [name])
+        out[name] = value
+    return out

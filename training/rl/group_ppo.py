@@ -24,6 +24,7 @@ from stable_baselines3.common.utils import obs_as_tensor
 from stable_baselines3.common.vec_env import VecEnv
 from torch import nn
 
+from training.rl.features import StageFeatures
 from training.rl.policy import TrackerPolicy
 
 __all__ = ["GroupPPO", "GroupRollout"]
@@ -43,6 +44,8 @@ class GroupRollout:
         self._steps: list[tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]] = []
         self.observations: dict[str, np.ndarray] = {}
         self.actions = self.log_probs = self.rewards = self.advantages = np.zeros((0, 0))
+        #: the policy's frozen stages' outputs for the S states (None: not cached)
+        self.features: StageFeatures | None = None
 
     def add(
         self,
@@ -88,12 +91,26 @@ class GroupPPO(PPO):
     difference per forward. ``K`` samples cost ``K`` box IoUs and no extra tracker forward, so
     each forward yields ``K`` advantages. The objective is each frame's expected reward at the
     states the tracker visits (``gamma`` is not used; nor are the critic and ``gae_lambda``).
+
+    ``cache_features`` (default on): the policy's frozen leading stages (the backbone, and the
+    fusion under ``train_parts="head"``) keep their rollout outputs, and the update epochs reuse
+    them instead of running those stages again (:mod:`training.rl.features`; the same update
+    to float rounding).
     """
 
-    def __init__(self, policy: Any, env: Any, *, group_size: int = 8, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        policy: Any,
+        env: Any,
+        *,
+        group_size: int = 8,
+        cache_features: bool = True,
+        **kwargs: Any,
+    ) -> None:
         if int(group_size) < 2:
             raise ValueError(f"group_size must be >= 2 (a group needs a mean), got {group_size}")
         self.group_size = int(group_size)
+        self.cache_features = bool(cache_features)
         super().__init__(policy, env, **kwargs)
 
     def _setup_model(self) -> None:
@@ -123,7 +140,21 @@ class GroupPPO(PPO):
         self.policy.set_training_mode(False)
         rollout_buffer.reset()
         callback.on_rollout_start()
-        for _ in range(n_rollout_steps):
+        with self.policy.frozen_stages.recording() as features:
+            if not self._rollout_steps(env, callback, rollout_buffer, n_rollout_steps):
+                return False
+        rollout_buffer.finish()
+        rollout_buffer.features = features[0] if self.cache_features else None
+        callback.update_locals(locals())
+        callback.on_rollout_end()
+        return True
+
+    def _rollout_steps(
+        self, env: VecEnv, callback: BaseCallback, rollout_buffer: GroupRollout, n_steps: int
+    ) -> bool:
+        """``n_steps`` steps of the ``M`` sub-envs into ``rollout_buffer``; False when the
+        callback stops the run."""
+        for _ in range(n_steps):
             with torch.no_grad():
                 obs_tensor = obs_as_tensor(self._last_obs, self.device)
                 mean, _ = self.policy.mean_and_value(obs_tensor, value=False)
@@ -142,9 +173,6 @@ class GroupPPO(PPO):
             rollout_buffer.add(self._last_obs, samples_np, log_probs.sum(-1).cpu().numpy(), rewards)
             self._last_obs = new_obs
             self._last_episode_starts = dones
-        rollout_buffer.finish()
-        callback.update_locals(locals())
-        callback.on_rollout_end()
         return True
 
     def train(self) -> None:
@@ -163,7 +191,9 @@ class GroupPPO(PPO):
         for _ in range(self.n_epochs):
             for idx in torch.randperm(buf.size).split(self.batch_size):
                 mean, _ = self.policy.mean_and_value(
-                    {k: v[idx] for k, v in observations.items()}, value=False
+                    {k: v[idx] for k, v in observations.items()},
+                    value=False,
+                    features=None if buf.features is None else buf.features.select(idx),
                 )
                 dist = self.policy.gaussian(mean[:, None])
                 log_prob = dist.log_prob(actions[idx]).sum(-1)  # (b, K)

@@ -68,7 +68,6 @@ from __future__ import annotations
 import copy
 import functools
 import math
-import types
 from typing import Any
 
 import numpy as np
@@ -81,6 +80,7 @@ from torch import nn
 
 import trackers
 from trackers.base import OBS_SHAPES, Tracker
+from training.rl.features import FrozenStages, StageFeatures
 
 __all__ = [
     "ACTION_MODES",
@@ -210,6 +210,9 @@ class TrackerPolicy(ActorCriticPolicy):
         if not math.isfinite(log_std_init):
             raise ValueError(f"log_std_init must be finite, got {log_std_init!r}")
         model = copy.deepcopy(resolve_tracker(tracker)).eval()
+        # one batched forward for the K sub-envs' observations (and a minibatch): the policy's
+        # outputs then differ from tracker.act's one-at-a-time ones by float rounding only
+        model.batch_invariant = False
         _check_spaces(observation_space, action_space, model)
         super().__init__(
             observation_space,
@@ -248,7 +251,7 @@ class TrackerPolicy(ActorCriticPolicy):
             p.requires_grad_(False)
         for p in self._trainable:
             p.requires_grad_(True)
-        self._no_grad_frozen_stages()
+        self.frozen_stages = FrozenStages(self._frozen_prefix())
         self._actor_frozen = False
         # the mean of the last forward, (B, 4) [-1, 1] units: SelfCriticalReward reads it
         self.last_mean: torch.Tensor | None = None
@@ -307,13 +310,17 @@ class TrackerPolicy(ActorCriticPolicy):
 
     # ------------------------------------------------------------------ the actor and critic
     def mean_and_value(
-        self, obs: Any, value: bool = True
+        self, obs: Any, value: bool = True, features: StageFeatures | None = None
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Action mean ``(B, 4)`` in ``[-1, 1]`` units and value ``(B,)`` (None unless
-        ``value``) from one tracker forward. Raises ``FloatingPointError`` on a non-finite
-        mean or value (broken weights must stop a run, not be trained on)."""
+        ``value``) from one batched tracker forward; ``features``: the frozen stages' outputs
+        for these observations, recorded in the rollout (:attr:`frozen_stages`), so that only
+        the trained stages run. Raises ``FloatingPointError`` on a non-finite mean or value
+        (broken weights must stop a run, not be trained on)."""
         batch, _ = self.tracker.prepare(obs)
-        out = self.tracker(batch)
+        self.frozen_stages.start_forward(batch[self.tracker.point_keys[0]].shape[0])
+        with self.frozen_stages.replaying(features):
+            out = self.tracker(batch)
         # ---- decision step (hold -> choose -> clip): tracker.act's rules, one unit to be
         # replaced by trackers.decision.decide(...) ----
         if self.action_mode == "best":
@@ -371,17 +378,19 @@ class TrackerPolicy(ActorCriticPolicy):
             params.extend(getattr(self.tracker, name).parameters())
         return params
 
-    def _no_grad_frozen_stages(self) -> None:
-        """Run the tracker's frozen stages that come before its first trained one (children in
-        registration order, which is execution order) under ``no_grad``: no gradient could pass
-        through them to a trained stage, and the update's forward skips their autograd graph
-        (P2B's fusion then takes its fast eval path, the one the rollout takes: identical
-        log-probabilities in rollout and update)."""
+    def _frozen_prefix(self) -> list[nn.Module]:
+        """The tracker's frozen stages that come before its first trained one (children in
+        registration order, which is execution order): they run under ``no_grad`` (no gradient
+        could pass through them to a trained stage, and the update's forward skips their
+        autograd graph; P2B's fusion then takes its fast eval path, the one the rollout takes:
+        identical log-probabilities in rollout and update), and their outputs can be cached
+        from the rollout for the update (:mod:`training.rl.features`)."""
+        prefix = []
         for _, child in self.tracker.named_children():
             if any(p.requires_grad for p in child.parameters()):
                 break
-            # a bound method (not a closure): a deepcopy of the tracker rebinds it
-            child.forward = types.MethodType(_no_grad_forward, child)
+            prefix.append(child)
+        return prefix
 
     @property
     def trainable_tracker_parameters(self) -> list[nn.Parameter]:
@@ -398,11 +407,6 @@ class TrackerPolicy(ActorCriticPolicy):
     @property
     def actor_frozen(self) -> bool:
         return self._actor_frozen
-
-
-def _no_grad_forward(module: nn.Module, *args: Any, **kwargs: Any) -> Any:
-    with torch.no_grad():
-        return type(module).forward(module, *args, **kwargs)
 
 
 def _check_choice(name: str, value: Any, valid: tuple[str, ...]) -> None:

@@ -23,6 +23,8 @@ Run directory (``out``, :data:`training.rundir.FINETUNE_LAYOUT`)::
     config.json            the run's FinetuneConfig (+ the base checkpoint's SHA-256)
     state.safetensors      resume state: policy and optimizer tensors, JSON metadata
     log.jsonl              one record per PPO update (rewards, IoU, approx_kl, losses, steps/s)
+    sb3/from-<step>/       (``logger``) SB3's logger outputs of the attempt that started at
+                           <step>: tensorboard events, progress.csv, progress.json
     snapshots/             tracker-<step>.safetensors every ``snapshot_every`` updates
     tracker.safetensors    the result, an ordinary tracker checkpoint (``trackers.load``)
     residual.safetensors   (``--algo residual``) the residual policy with its base tracker
@@ -52,6 +54,7 @@ import numpy as np
 import torch
 from stable_baselines3 import PPO
 from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.logger import configure
 from tqdm import tqdm
 
 import trackers
@@ -121,18 +124,18 @@ def _identity(cfg: FinetuneConfig) -> dict[str, Any]:
     return {**cfg.to_dict(), "tracker_sha256": tracker_digest(cfg.tracker)}
 
 
-def load_base(cfg: FinetuneConfig, *, untrained: bool = False) -> torch.nn.Module:
+def load_base(cfg: FinetuneConfig) -> torch.nn.Module:
     """The base tracker of ``cfg`` (:func:`training.loading.load_tracker`: a shipped name, a
     tracker file or a training run's ``best.pt`` / ``last.pt``), checked for ``cfg.algo``.
 
     A learned tracker's bare name (``"p2b"``, a random initialisation, seeded by ``cfg.seed``)
-    is refused unless ``untrained``; a tracker without weights (a baseline) is refused; the
+    is refused unless ``cfg.untrained``; a tracker without weights (a baseline) is refused; the
     residual variant refuses a tracker that reads observation keys beyond the default ones
     (M2-Track's ``previous_search``: :class:`~training.rl.wrappers.ResidualTracker` does not
     carry them, so its result could not be evaluated). Raises :class:`FinetuneError` naming
     the field."""
     try:
-        base = resolve_tracker(load_tracker(cfg.tracker, untrained=untrained, seed=cfg.seed))
+        base = resolve_tracker(load_tracker(cfg.tracker, untrained=cfg.untrained, seed=cfg.seed))
     except (TypeError, ValueError, FileNotFoundError) as exc:
         raise FinetuneError(f"tracker {cfg.tracker!r}: {exc}", ["tracker"]) from None
     extra = tuple(getattr(base, "observation_keys", ()))
@@ -305,6 +308,11 @@ class PPORun:
                 "tracker_lr_scale": cfg.tracker_lr / cfg.lr if cfg.lr else 0.0,
             },
         )
+        if cfg.logger_formats:
+            # SB3's own logger (TensorBoard, CSV, JSON), one folder per attempt: its CSV and
+            # JSON writers start their files afresh, so a resume must not reuse the folder
+            folder = out / "sb3" / f"from-{steps0:08d}"
+            self.model.set_logger(configure(str(folder), cfg.logger_formats))
         self.policy = self.model.policy
         if isinstance(self.env, SelfCriticalReward):
             self.env.policy = self.policy
@@ -393,6 +401,7 @@ class PPORun:
         self.ious = []
         self.log_file.write(json.dumps(record) + "\n")
         self.log_file.flush()
+        self._log_scalars(record)
         if self.bar is not None:
             kl = record.get("approx_kl")
             self.bar.set_postfix_str(
@@ -400,6 +409,17 @@ class PPORun:
                 f"{record['iou'] or float('nan'):.3f} kl "
                 f"{float('nan') if kl is None else kl:.4f} {record['steps_per_s']:.1f} steps/s"
             )
+
+    def _log_scalars(self, record: dict[str, Any]) -> None:
+        """The update's record through SB3's logger (``rollout/``, ``train/``, ``time/``
+        scalars; the ``train/`` ones SB3's update recorded), one row per update at its step."""
+        logger = self.model.logger
+        for key, name in (("ep_reward", "rollout/ep_rew_mean"), ("ep_len", "rollout/ep_len_mean"),
+                          ("iou", "rollout/iou"), ("steps_per_s", "time/steps_per_s"),
+                          ("update", "time/updates")):  # fmt: skip
+            if record[key] is not None:
+                logger.record(name, record[key])
+        logger.dump(step=record["step"])
 
     def checkpoint(self, finished: bool = False) -> None:
         meta = {
@@ -436,8 +456,13 @@ class PPORun:
                     continue
                 self.policy.freeze_actor(frozen)
                 try:
+                    # log_interval=None: one logger row per update, written by _log_update
                     self.model.learn(
-                        remaining, callback=callback, reset_num_timesteps=False, progress_bar=False
+                        remaining,
+                        callback=callback,
+                        reset_num_timesteps=False,
+                        progress_bar=False,
+                        log_interval=None,
                     )
                 except FloatingPointError as exc:
                     self._non_finite(f"policy output ({exc})")
@@ -472,22 +497,20 @@ def finetune(
     *,
     resume: bool = False,
     overwrite: bool = False,
-    untrained: bool = False,
     make_env: Callable[[], gym.Env] | None = None,
     progress: bool = True,
     log: Callable[[str], Any] = print,
 ) -> FinetuneResult:
     """Fine-tune ``cfg.tracker`` with ``cfg.algo`` into ``out`` (see the module docstring).
 
-    ``untrained``: accept a learned tracker's bare name (a random initialisation from
-    ``cfg.seed``). ``make_env`` (tests, custom data): a factory of unwrapped ``TrackingEnv`` s
+    ``make_env`` (tests, custom data): a factory of unwrapped ``TrackingEnv`` s
     to train on, instead of the train split of ``cfg``'s world; the val check is then skipped.
     Raises :class:`FinetuneError` (bad config, bad base tracker, refused run directory, resume
     mismatch) before anything is built or written, and :class:`NonFiniteError` when a NaN
     appears (naming the step)."""
     out = Path(out)
     cfg.validate()
-    base = load_base(cfg, untrained=untrained)
+    base = load_base(cfg)
     if make_env is None and cfg.data_root:
         _root(cfg)  # a missing data root is refused before the run directory is touched
     resume_meta = check_out_dir(out, cfg, resume=resume, overwrite=overwrite)
