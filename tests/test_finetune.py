@@ -481,3 +481,144 @@ def test_every_finetune_flag_reaches_the_config():
     for dest, (_, expected) in given.items():
         value = getattr(cfg, dest)
         assert value == expected and type(value) is type(expected), dest
+
+
+# ---------------------------------------------------------------- issue 42's bad inputs 1-6
+
+
+def test_a_run_directory_of_another_command_is_refused(tmp_path, data):
+    """42.1: ``--overwrite`` never deletes another command's run (here a ``pointtrack train``
+    one), and ``train`` refuses a finetune directory."""
+    from training.pretrain import TrainingError, check_run_dir
+
+    train_dir = tmp_path / "train-run"
+    train_dir.mkdir()
+    for name in ("config.yaml", "last.pt", "log.jsonl"):
+        (train_dir / name).write_text("x")
+    for overwrite in (False, True):
+        with pytest.raises(ftc.FinetuneError, match="holds a `pointtrack train` run"):
+            run(tiny_cfg(), train_dir, data, overwrite=overwrite)
+    assert sorted(p.name for p in train_dir.iterdir()) == ["config.yaml", "last.pt", "log.jsonl"]
+    ft_dir = tmp_path / "ft-run"
+    run(tiny_cfg(timesteps=8), ft_dir, data)
+    with pytest.raises(TrainingError, match="holds a `pointtrack finetune` run"):
+        check_run_dir(ft_dir, resume=False)
+
+
+def _cli_config(argv: list[str]) -> ftc.FinetuneConfig:
+    import argparse
+
+    from training.commands.finetune import add_arguments, build_config
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    return build_config(parser.parse_args(argv))
+
+
+def test_resume_compares_what_the_user_passed_even_a_default(tmp_path, data):
+    """42.2: ``--resume --algo ppo`` on a group run is refused although ppo is the default;
+    ``--resume --out DIR`` alone continues DIR's run as configured."""
+    out = tmp_path / "run"
+    run(tiny_cfg(algo="group", group_size=4, timesteps=8), out, data)
+    alone = _cli_config(["--resume", "--out", str(out), "--timesteps", "16"])
+    assert (alone.algo, alone.group_size, alone.timesteps) == ("group", 4, 16)
+    changed = _cli_config(["--resume", "--out", str(out), "--algo", "ppo"])
+    with pytest.raises(ftc.FinetuneError, match="algo: saved 'group', given 'ppo'"):
+        ft.check_out_dir(out, changed, resume=True)
+
+
+def test_a_bare_learned_name_needs_untrained(tmp_path, data):
+    """42.3: ``p2b`` (no weights) is refused naming the flag; with ``untrained`` it trains the
+    random initialisation seeded by ``seed`` (two such runs start from the same weights)."""
+    from training.commands.finetune import flag_message
+
+    with pytest.raises(ftc.FinetuneError, match="has no weights") as exc:
+        run(tiny_cfg(tracker="p2b"), tmp_path / "x", data)
+    assert "--untrained" in flag_message(exc.value) and exc.value.fields == ("tracker",)
+    assert not (tmp_path / "x").exists()
+    cfg = tiny_cfg(tracker="p2b", untrained=True, timesteps=8)
+    assert ft.load_base(cfg).state_dict().keys() == trackers.load("p2b").state_dict().keys()
+    a, b = ft.load_base(cfg), ft.load_base(cfg)
+    assert all(torch.equal(v, b.state_dict()[k]) for k, v in a.state_dict().items())
+    assert run(cfg, tmp_path / "u", data).timesteps == 8
+
+
+def test_every_field_is_checked_before_anything_is_written_and_a_stateless_dir_starts_fresh(
+    tmp_path, data, monkeypatch
+):
+    """42.4: a bad value writes nothing; a run killed inside its first rollout (config and
+    log, no state) blocks neither a rerun nor ``--resume``: both start from the beginning."""
+    out = tmp_path / "run"
+    with pytest.raises(ftc.FinetuneError, match="log_std_init must be finite, got nan"):
+        run(tiny_cfg(log_std_init=float("nan")), out, data)
+    assert not out.exists()
+
+    def killed(self, local):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ft.PPORun, "on_step", killed)
+    with pytest.raises(KeyboardInterrupt):
+        run(tiny_cfg(), out, data)
+    monkeypatch.undo()
+    assert (out / "config.json").exists() and not (out / "state.safetensors").exists()
+    assert run(tiny_cfg(timesteps=8), out, data).timesteps == 8
+    (out / "state.safetensors").unlink()
+    (out / "tracker.safetensors").unlink()
+    assert run(tiny_cfg(timesteps=8), out, data, resume=True).timesteps == 8
+    assert log_steps(out) == [8]
+
+
+def test_residual_on_a_tracker_with_extra_observation_keys_is_refused_before_training(
+    tmp_path, data
+):
+    """42.5: M2-Track reads ``previous_search``, which the residual tracker does not serve."""
+    out = tmp_path / "run"
+    with pytest.raises(ftc.FinetuneError, match="algo 'residual' cannot fine-tune.*previous"):
+        run(tiny_cfg(algo="residual", tracker="m2track-kitti1-u"), out, data)
+    assert not out.exists()
+
+
+def test_group_size_is_bounded(tmp_path, data):
+    """42.6: a huge group is one line, not an allocator traceback."""
+    with pytest.raises(ftc.FinetuneError, match=r"group_size must be <= 1024, got 1000000000"):
+        run(tiny_cfg(algo="group", group_size=10**9), tmp_path / "x", data)
+    assert not (tmp_path / "x").exists()
+
+
+# ---------------------------------------------------------------- issue 43: logger and config
+
+
+def test_sb3_logger_writes_the_update_scalars(tmp_path, data, monkeypatch):
+    import csv
+
+    out = tmp_path / "run"
+    run(tiny_cfg(algo="group", group_size=4, timesteps=16, logger="csv,json"), out, data)
+    rows = list(csv.DictReader((out / "sb3/from-00000000/progress.csv").open()))
+    assert [int(r["time/updates"]) for r in rows] == [1, 2]
+    for key in ("rollout/iou", "train/approx_kl", "train/clip_fraction", "time/steps_per_s"):
+        assert all(r[key] != "" and np.isfinite(float(r[key])) for r in rows), key
+    assert len((out / "sb3/from-00000000/progress.json").read_text().splitlines()) == 2
+    monkeypatch.setattr(ftc.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ftc.FinetuneError, match=r"pip install 'pointtrack\[tensorboard\]'"):
+        tiny_cfg(logger="tensorboard").validate()
+    with pytest.raises(ftc.FinetuneError, match="logger must list some of"):
+        tiny_cfg(logger="csv,wandb").validate()
+
+
+def test_config_file_then_flags_then_set(tmp_path):
+    """43.5: an RL Zoo-style file < the flags given < ``--set``; bad keys and values name the
+    file or the key before any work."""
+    path = tmp_path / "group_ppo.yml"
+    path.write_text("algo: group\ngroup_size: 4\nn_timesteps: 64\nlearning_rate: 1e-3\n")
+    cfg = _cli_config(["--config", str(path)])
+    assert (cfg.algo, cfg.group_size, cfg.timesteps, cfg.lr) == ("group", 4, 64, 1e-3)
+    assert _cli_config(["--config", str(path), "--group-size", "6"]).group_size == 6
+    top = _cli_config(["--config", str(path), "--group-size", "6", "--set", "group_size=7"])
+    assert top.group_size == 7 and top.timesteps == 64
+    path.write_text("algo: group\ngroup_sise: 4\n")
+    with pytest.raises(ftc.FinetuneError, match=f"{path}.*unknown key 'group_sise'"):
+        _cli_config(["--config", str(path)])
+    with pytest.raises(ftc.FinetuneError, match="n_steps='many': must be an integer"):
+        _cli_config(["--set", "n_steps=many"])
+    with pytest.raises(ftc.FinetuneError, match="expected KEY=VALUE"):
+        _cli_config(["--set", "n_steps"])
