@@ -22,6 +22,7 @@ __all__ = [
     "TrainConfig",
     "checkpoint_env_options",
     "checkpoint_tracker_kwargs",
+    "coerce",
     "config_from_dict",
     "load_config",
     "parse_value",
@@ -407,7 +408,13 @@ _HINTS = typing.get_type_hints(TrainConfig)
 
 def _check_type(key: str, value: Any) -> Any:
     """Coerce ``value`` to the field's type or raise a one-line reason."""
-    hint = _HINTS[key]
+    return coerce(_HINTS[key], value)
+
+
+def coerce(hint: Any, value: Any) -> Any:
+    """``value`` (from YAML or ``--set``) as a config field of type ``hint`` (``int``,
+    ``float``, ``str``, ``bool``, ``dict``, or one of them ``| None``); ``TypeError`` with a
+    one-line reason otherwise (the config systems of ``train`` and ``finetune`` share it)."""
     args = typing.get_args(hint)
     optional = isinstance(hint, types.UnionType) and type(None) in args
     base = next((a for a in args if a is not type(None)), hint) if optional else hint

@@ -34,8 +34,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from training.config import parse_value
 from training.rl.config import (
     ALGOS,
     BASELINES,
@@ -179,7 +178,7 @@ def _given(args: argparse.Namespace) -> dict[str, Any]:
         key, sep, text = item.partition("=")
         if not sep or not key.strip():
             raise FinetuneError(f"--set {item!r}: expected KEY=VALUE")
-        values[key.strip()] = yaml.safe_load(text) if text.strip() else ""
+        values[key.strip()] = parse_value(text) if text.strip() else ""
     return values
 
 

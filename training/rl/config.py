@@ -20,6 +20,7 @@ import torch
 import yaml
 
 from envs.tracking_env import REWARDS
+from training.config import coerce
 from training.rl.policy import ACTION_MODES, CRITICS, TRAIN_PARTS
 
 __all__ = [
@@ -215,36 +216,6 @@ class FinetuneConfig:
 _HINTS = typing.get_type_hints(FinetuneConfig)
 
 
-def _coerced(name: str, value: Any) -> Any:
-    """``value`` as field ``name``'s type (an int for a float field, a YAML string such as
-    ``1e-5`` for a number); ``TypeError`` with the reason otherwise."""
-    hint = _HINTS[name]
-    options = typing.get_args(hint) or (hint,)
-    if value is None:
-        if type(None) in options:
-            return None
-        raise TypeError("may not be null")
-    kind = next(t for t in options if t is not type(None))
-    if kind is bool:
-        if isinstance(value, bool):
-            return value
-        raise TypeError("must be true or false")
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise TypeError("must be an integer")
-        return value
-    if kind is float:
-        try:  # YAML 1.1 reads 1e-5 (no dot) as a string
-            if isinstance(value, bool) or not isinstance(value, int | float | str):
-                raise ValueError
-            return float(value)
-        except ValueError:
-            raise TypeError("must be a number") from None
-    if not isinstance(value, str):
-        raise TypeError("must be a string")
-    return value
-
-
 def config_from_values(
     values: Mapping[str, Any], base: FinetuneConfig | None = None, *, where: str = ""
 ) -> FinetuneConfig:
@@ -260,7 +231,7 @@ def config_from_values(
             errors.append((key, f"unknown key {key!r} (valid: {', '.join(sorted(known))})"))
             continue
         try:
-            setattr(cfg, key, _coerced(key, value))
+            setattr(cfg, key, coerce(_HINTS[key], value))
         except TypeError as exc:
             errors.append((key, f"{key}={value!r}: {exc}"))
     if errors:
