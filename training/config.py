@@ -14,6 +14,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import trackers
+from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
+from trackers.registry import default_env_options
+
 __all__ = [
     "IDENTITY_EXEMPT",
     "LEGACY_DEFAULTS",
@@ -34,8 +38,6 @@ def tracker_config(tracker: str, model_size: str = "default", extra: dict | None
     """The kwargs of ``trackers.make(tracker, ...)`` for a model size (the tracker class's
     ``sizes``, :func:`trackers.size_config`), updated by ``extra``: nested dicts merge, so
     ``{"head": {"positive_fraction": 0.2}}`` keeps the size's other head fields."""
-    import trackers
-
     return _merged(trackers.size_config(tracker, model_size), extra or {})
 
 
@@ -200,8 +202,6 @@ class TrainConfig:
         def bad(key: str, why: str) -> None:
             errors.append(f"{key}={getattr(self, key)!r}: {why}")
 
-        import trackers
-
         learned = trackers.available("learned")
         if self.tracker not in learned:
             bad("tracker", f"must be one of {', '.join(learned)}")
@@ -321,8 +321,6 @@ class TrainConfig:
 
     def search_enlargement(self) -> tuple[float, float]:
         """``(scale, offset_m)`` of the search region in training and in the val env."""
-        from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
-
         if self.tracker == "gpt" and self.recipe_value("gpt_search_region"):
             return GPT_SEARCH_ENLARGEMENT
         return (SEARCH_SCALE, SEARCH_OFFSET_M)
@@ -341,8 +339,6 @@ class TrainConfig:
         """The ``tracker.env_options`` a tracker trained with this config carries: all of
         :meth:`env_kwargs` when any differs from the env's default, else ``{}`` (recipe v1:
         nothing recorded, the tracker file is written exactly as before the options existed)."""
-        from trackers.registry import default_env_options
-
         kwargs = self.env_kwargs()
         defaults = default_env_options()
         if all(_same_option(kwargs[k], defaults[k]) for k in kwargs):
