@@ -34,8 +34,10 @@ def main() -> None:
 
     from stable_baselines3.common.utils import obs_as_tensor
 
-    from training.finetune import FinetuneConfig, make_vec_env, train_env_factory
     from training.rl import TrackerPolicy
+    from training.rl.config import FinetuneConfig
+    from training.rl.run import train_env_factory
+    from training.rl.wrappers import make_vec_env
 
     cfg = FinetuneConfig(tracker=args.tracker, preset=args.preset)
     factory = train_env_factory(cfg)

@@ -184,7 +184,8 @@ def bench_benchmark(
     import torch
 
     from envs.tracking_env import make_synthetic_env
-    from training.evaluate import env_options_for, load_tracker
+    from training.evaluate import env_options_for
+    from training.loading import load_tracker
     from training.robustness import run_weather_benchmark
 
     torch.set_num_threads(1)

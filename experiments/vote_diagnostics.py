@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from trackers.head import proposal_labels
-from training.evaluate import load_tracker
+from training.loading import load_tracker
 from training.samples import BATCH_KEYS, TrackingSamples, load_tracklets
 
 

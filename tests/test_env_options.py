@@ -19,6 +19,7 @@ from envs.tracking_env import TrackingEnv, make_toy_dataset
 from trackers.baselines import PreviousBox
 from trackers.registry import CHECKPOINT_DIR, ENV_OPTION_KEYS, default_env_options
 from training.config import GPT_SEARCH_ENLARGEMENT, TrainConfig
+from training.provenance import ProvenanceWarning
 
 MERGED = "first_and_previous_merged"
 V2_P2B = {"template_mode": MERGED, "search_enlargement": (1.25, 2.0)}
@@ -281,6 +282,8 @@ def test_cli_eval_builds_each_trackers_env(tmp_path, monkeypatch):
     monkeypatch.setattr(eval_cmd, "build_env", spy)
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # no tracker runs on options it was not trained with
+        # a file saved here records no provenance: that note is not what this test is about
+        warnings.filterwarnings("ignore", category=ProvenanceWarning)
         report = _eval(tmp_path, "--tracker", "previous_box", str(v2), "constant_velocity")
     assert built == ["first_and_previous", MERGED]
     assert list(report) == ["previous_box", str(v2), "constant_velocity"]
@@ -326,15 +329,15 @@ def test_selection_scores_a_candidate_with_its_options(tmp_path, monkeypatch, to
 
 
 def test_residual_tracker_keeps_its_base_options(tmp_path):
-    from training.finetune import ResidualTracker, _residual_policy
+    from training.rl.wrappers import ResidualTracker, residual_policy
 
     base = _slim("p2b", V2_P2B)
-    tuned = ResidualTracker(base, _residual_policy(-2.0), name="p2b-residual")
+    tuned = ResidualTracker(base, residual_policy(-2.0), name="p2b-residual")
     assert tuned.env_options == V2_P2B
     path = tuned.save(tmp_path / "residual.safetensors")
     again = ResidualTracker.load(path)
     assert again.env_options == again.base.env_options == V2_P2B
-    plain = ResidualTracker(_slim(), _residual_policy(-2.0)).save(tmp_path / "plain.safetensors")
+    plain = ResidualTracker(_slim(), residual_policy(-2.0)).save(tmp_path / "plain.safetensors")
     assert "env_options" not in _metadata(plain)
     assert ResidualTracker.load(plain).env_options == {}
     assert np.allclose(again.scale, tuned.scale)
@@ -342,7 +345,8 @@ def test_residual_tracker_keeps_its_base_options(tmp_path):
 
 def test_finetune_envs_use_the_base_trackers_options():
     """``pointtrack finetune`` trains (and val-checks) on the base tracker's options."""
-    from training.finetune import FinetuneConfig, train_env_factory
+    from training.rl.config import FinetuneConfig
+    from training.rl.run import train_env_factory
 
     cfg = FinetuneConfig(preset="tiny", clip_length=4)
     env = train_env_factory(cfg, V2_P2B)()

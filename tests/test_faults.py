@@ -120,7 +120,7 @@ def test_row3_max_tracklets_below_one_is_refused(count, capsys):
 
 
 def test_row5_untrained_learned_tracker_needs_the_flag_and_is_seeded(capsys):
-    from training.evaluate import UntrainedTrackerError, load_tracker
+    from training.loading import UntrainedTrackerError, load_tracker
 
     assert main(["eval", "--preset", "tiny", "--tracker", "p2b"]) == 2
     _one_line_error(capsys, "eval", "'p2b' has no weights", "--untrained")
@@ -174,7 +174,7 @@ def _training_checkpoint(path: Path, ema: bool) -> dict[str, torch.Tensor]:
 
 @pytest.mark.parametrize("ema", [False, True])
 def test_row7_training_checkpoint_evaluates_directly(tiny, tmp_path, capsys, ema):
-    from training.evaluate import load_tracker
+    from training.loading import load_tracker
 
     path = tmp_path / "run" / "best.pt"
     expected = _training_checkpoint(path, ema)
@@ -565,7 +565,7 @@ def test_sigkill_select_never_reads_a_partial_report(tiny, tmp_path):
 
 
 def test_resume_truncates_the_log_to_the_checkpoint(tmp_path):
-    from training.checkpoint import truncate_log
+    from training.rundir import truncate_log
 
     log = tmp_path / "log.jsonl"
     records = [

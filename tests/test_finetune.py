@@ -1,4 +1,4 @@
-"""training.finetune / `pointtrack finetune`: the PPO run, its run directory, resume, NaN stops,
+"""training.rl.run / `pointtrack finetune`: the PPO run, its run directory, resume, NaN stops,
 the residual variant without unpickling (issue 22 items 2, 5; issue 23 rows 1, 17)."""
 
 from __future__ import annotations
@@ -22,8 +22,11 @@ import torch
 
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
-from training import finetune as ft
 from training.cli import main
+from training.rl import config as ftc
+from training.rl import run as ft
+from training.rl import state as fts
+from training.rl.wrappers import ResidualTracker
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 REPO = Path(__file__).resolve().parents[1]
@@ -34,7 +37,7 @@ def data():
     return make_toy_dataset(num_frames=8)
 
 
-def tiny_cfg(**kwargs) -> ft.FinetuneConfig:
+def tiny_cfg(**kwargs) -> ftc.FinetuneConfig:
     base = {
         "tracker": "p2b-kitti1-u",
         "timesteps": 32,
@@ -45,7 +48,7 @@ def tiny_cfg(**kwargs) -> ft.FinetuneConfig:
         "clip_length": 4,
         "warmup_rollouts": 1,
     }
-    return ft.FinetuneConfig(**{**base, **kwargs})
+    return ftc.FinetuneConfig(**{**base, **kwargs})
 
 
 def run(cfg, out, data, **kwargs):
@@ -92,39 +95,39 @@ def test_ppo_run_writes_an_ordinary_tracker_checkpoint(tmp_path, data):
         trackers.load(out / "snapshots/tracker-00000032.safetensors").state_dict(),
         tuned.state_dict(),
     )
-    _, _, _, meta = ft.load_state(out / "state.safetensors")
+    _, _, _, meta = fts.load_state(out / "state.safetensors")
     assert meta["finished"] and meta["timesteps"] == 32
 
 
 def test_out_dir_refusals_name_the_problem(tmp_path, data):
     out = tmp_path / "run"
     run(tiny_cfg(timesteps=8), out, data)
-    with pytest.raises(ft.FinetuneError, match="holds a finished run.*--resume.*--overwrite"):
+    with pytest.raises(ftc.FinetuneError, match="already holds a run.*--resume.*--overwrite"):
         run(tiny_cfg(timesteps=8), out, data)
     with pytest.raises(
-        ft.FinetuneError,
+        ftc.FinetuneError,
         match=r"another tracker or config \(gamma: saved 0.9, "
         r"given 0.5; tracker: saved 'p2b-kitti1-u', "
         r"given 'bat-kitti1-u'",
     ):
         run(tiny_cfg(timesteps=16, gamma=0.5, tracker="bat-kitti1-u"), out, data, resume=True)
-    with pytest.raises(ft.FinetuneError, match="nothing to resume"):
+    with pytest.raises(ftc.FinetuneError, match="nothing to resume"):
         run(tiny_cfg(), tmp_path / "empty", data, resume=True)
     with pytest.raises(
-        ft.FinetuneError, match="algo must be one of \\['ppo', 'group', 'residual'\\]"
+        ftc.FinetuneError, match="algo must be one of \\['ppo', 'group', 'residual'\\]"
     ):
         run(tiny_cfg(algo="sac"), tmp_path / "x", data)
     if not torch.cuda.is_available():
-        with pytest.raises(ft.FinetuneError, match="device 'cuda': CUDA is not available"):
+        with pytest.raises(ftc.FinetuneError, match="device 'cuda': CUDA is not available"):
             run(tiny_cfg(device="cuda"), tmp_path / "y", data)
     run(tiny_cfg(timesteps=8), out, data, overwrite=True)
     assert log_steps(out) == [8]
 
 
 def test_self_critical_run_trains_and_needs_one_step_returns(tmp_path, data):
-    with pytest.raises(ft.FinetuneError, match="self_critical.*set gamma=0 \\(got gamma=0.9\\)"):
+    with pytest.raises(ftc.FinetuneError, match="self_critical.*set gamma=0 \\(got gamma=0.9\\)"):
         run(tiny_cfg(baseline="self_critical"), tmp_path / "bad", data)
-    with pytest.raises(ft.FinetuneError, match="baseline must be one of \\['critic'"):
+    with pytest.raises(ftc.FinetuneError, match="baseline must be one of \\['critic'"):
         run(tiny_cfg(baseline="greedy"), tmp_path / "bad", data)
     out = tmp_path / "run"
     result = run(tiny_cfg(baseline="self_critical", gamma=0.0), out, data)
@@ -138,9 +141,9 @@ def test_self_critical_run_trains_and_needs_one_step_returns(tmp_path, data):
 
 
 def test_group_run_trains_resumes_and_refuses_what_does_not_apply(tmp_path, data):
-    with pytest.raises(ft.FinetuneError, match="group_size must be >= 2, got 1"):
+    with pytest.raises(ftc.FinetuneError, match="group_size must be >= 2, got 1"):
         run(tiny_cfg(algo="group", group_size=1), tmp_path / "bad", data)
-    with pytest.raises(ft.FinetuneError, match="baseline 'self_critical' does not apply"):
+    with pytest.raises(ftc.FinetuneError, match="baseline 'self_critical' does not apply"):
         run(tiny_cfg(algo="group", baseline="self_critical", gamma=0.0), tmp_path / "bad", data)
     out = tmp_path / "run"
     cfg = tiny_cfg(algo="group", group_size=4, timesteps=16, snapshot_every=2)
@@ -154,28 +157,28 @@ def test_group_run_trains_resumes_and_refuses_what_does_not_apply(tmp_path, data
     tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
     changed = [k for k, v in tuned.state_dict().items() if not torch.equal(v, base.state_dict()[k])]
     assert changed and all(k.startswith("head.") for k in changed)
-    with pytest.raises(ft.FinetuneError, match="group_size: saved 4, given 8"):
+    with pytest.raises(ftc.FinetuneError, match="group_size: saved 4, given 8"):
         run(dataclasses.replace(cfg, timesteps=48, group_size=8), out, data, resume=True)
 
 
 def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch):
     out = tmp_path / "run"
-    original = ft._PPORun.after_update
+    original = ft.PPORun.after_update
 
     def stop_after_two(self):
         original(self)
         if self.updates == 2:
             raise KeyboardInterrupt  # a kill right after the second checkpoint
 
-    monkeypatch.setattr(ft._PPORun, "after_update", stop_after_two)
+    monkeypatch.setattr(ft.PPORun, "after_update", stop_after_two)
     with pytest.raises(KeyboardInterrupt):
         run(tiny_cfg(), out, data)
-    monkeypatch.setattr(ft._PPORun, "after_update", original)
-    policy_sd, optim_sd, _, meta = ft.load_state(out / "state.safetensors")
+    monkeypatch.setattr(ft.PPORun, "after_update", original)
+    policy_sd, optim_sd, _, meta = fts.load_state(out / "state.safetensors")
     assert meta["timesteps"] == 16 and not meta["finished"]
     assert not (out / "tracker.safetensors").exists()
     # the state restores into a fresh policy exactly (optimizer moments included)
-    with pytest.raises(ft.FinetuneError, match="holds an unfinished run"):
+    with pytest.raises(ftc.FinetuneError, match="already holds a run"):
         run(tiny_cfg(), out, data)
     result = run(tiny_cfg(), out, data, resume=True)
     assert result.timesteps == 32 and result.updates == 4
@@ -183,7 +186,7 @@ def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch
     assert optim_sd["state"] and all(
         torch.isfinite(t).all() for e in optim_sd["state"].values() for t in e.values()
     )
-    assert set(policy_sd) == set(ft.load_state(out / "state.safetensors")[0])
+    assert set(policy_sd) == set(fts.load_state(out / "state.safetensors")[0])
     trackers.load(out / "tracker.safetensors")
 
 
@@ -191,15 +194,13 @@ def test_state_round_trips_policy_and_optimizer(tmp_path, data):
     out = tmp_path / "run"
     run(tiny_cfg(timesteps=16), out, data)
     cfg = tiny_cfg(timesteps=16)
-    r = ft._PPORun(
+    r = ft.PPORun(
         cfg,
         out,
         lambda: TrackingEnv(data, sampling="random"),
-        ft._read_meta(out / "state.safetensors"),
-        False,
-        print,
+        resume_meta=fts.read_state_meta(out / "state.safetensors"),
     )
-    policy_sd, optim_sd, _, _ = ft.load_state(out / "state.safetensors")
+    policy_sd, optim_sd, _, _ = fts.load_state(out / "state.safetensors")
     for k, v in r.policy.state_dict().items():
         assert torch.equal(v, policy_sd[k]), k
     restored = r.policy.optimizer.state_dict()
@@ -226,7 +227,7 @@ class NanAfter(gym.Wrapper):
 def test_nan_in_a_rollout_stops_naming_the_step_and_keeps_the_last_good_checkpoint(tmp_path, data):
     out = tmp_path / "run"
     with pytest.raises(
-        ft.NonFiniteError,
+        ftc.NonFiniteError,
         match=r"non-finite rewards of the rollout at step 24 "
         r"\(update 2\).*last good checkpoint \(step 16\)",
     ):
@@ -236,20 +237,21 @@ def test_nan_in_a_rollout_stops_naming_the_step_and_keeps_the_last_good_checkpoi
             progress=False,
             make_env=lambda: NanAfter(TrackingEnv(data, sampling="random"), 10),
         )
-    _, _, _, meta = ft.load_state(out / "state.safetensors")
+    _, _, _, meta = fts.load_state(out / "state.safetensors")
     assert meta["timesteps"] == 16 and not meta["finished"]
     assert not (out / "tracker.safetensors").exists()
 
 
 def test_residual_variant_saves_safetensors_and_loads_in_eval(tmp_path, data):
-    from training.evaluate import evaluate, load_tracker
+    from training.evaluate import evaluate
+    from training.loading import load_tracker
 
     out = tmp_path / "res"
     run(tiny_cfg(algo="residual", timesteps=16, n_steps=8), out, data)
     assert not (out / "ppo.zip").exists()
-    tuned = ft.ResidualTracker.load(out)
+    tuned = ResidualTracker.load(out)
     again = load_tracker(str(out / "residual.safetensors"))  # what `pointtrack eval` calls
-    assert isinstance(again, ft.ResidualTracker)
+    assert isinstance(again, ResidualTracker)
     obs, _ = TrackingEnv(data).reset(seed=0)
     np.testing.assert_allclose(again.act(obs), tuned.act(obs), atol=1e-6)
     batch = {k: np.stack([v, v]) for k, v in obs.items()}
@@ -281,10 +283,10 @@ def test_a_crafted_ppo_zip_is_never_unpickled(tmp_path):
     _crafted_sb3_zip(run_dir / "ppo.zip", marker)
     (run_dir / "finetune.json").write_text(json.dumps({"tracker": "p2b-kitti1-u"}))
     with pytest.raises(ValueError, match="ppo.zip.*refused.*unpickles"):
-        ft.ResidualTracker.load(run_dir)
+        ResidualTracker.load(run_dir)
     with pytest.raises(ValueError, match="SB3 zips are refused"):
-        ft.ResidualTracker.load(run_dir / "ppo.zip")
-    from training.evaluate import load_tracker
+        ResidualTracker.load(run_dir / "ppo.zip")
+    from training.loading import load_tracker
 
     with pytest.raises((ValueError, FileNotFoundError)):
         load_tracker(str(run_dir / "ppo.zip"))
@@ -367,7 +369,7 @@ def test_cli_end_to_end_result_loads_and_evaluates(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["finetune", "--resume", "--out", str(out), "--gamma", "0.5", "--timesteps", "24"])
     assert exc.value.code == 2
-    assert "(gamma: saved 0.9, given 0.5)" in capsys.readouterr().err
+    assert "(--gamma: saved 0.9, given 0.5)" in capsys.readouterr().err
     assert (
         main(
             [
@@ -410,19 +412,19 @@ def test_sigkill_and_resume_through_the_cli(tmp_path):
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and child.poll() is None:
         state = out / "state.safetensors"
-        if state.exists() and ft._read_meta(state)["timesteps"] >= 16:
+        if state.exists() and fts.read_state_meta(state)["timesteps"] >= 16:
             break
         time.sleep(0.2)
     assert child.poll() is None, child.stderr.read().decode()
     child.send_signal(signal.SIGKILL)
     child.wait()
-    killed_at = ft._read_meta(out / "state.safetensors")["timesteps"]
+    killed_at = fts.read_state_meta(out / "state.safetensors")["timesteps"]
     assert killed_at < 64 and not (out / "tracker.safetensors").exists()
     done = subprocess.run([*args, "--resume"], cwd=REPO, env=env, capture_output=True, timeout=300)
     assert done.returncode == 0, done.stderr.decode()
     steps = log_steps(out)
     assert steps == sorted(set(steps)) and steps[-1] == 64 and steps[0] == 8
-    assert ft._read_meta(out / "state.safetensors")["finished"]
+    assert fts.read_state_meta(out / "state.safetensors")["finished"]
     trackers.load(out / "tracker.safetensors")
     assert not list(out.glob(".*tmp*"))
 
@@ -439,7 +441,7 @@ def test_every_finetune_flag_reaches_the_config():
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     dests = {a.dest for a in parser._actions}
-    fields = {f.name: f for f in dataclasses.fields(ft.FinetuneConfig)}
+    fields = {f.name: f for f in dataclasses.fields(ftc.FinetuneConfig)}
     assert set(fields) <= dests
     given = {
         "tracker": ("bat-kitti1-u", "bat-kitti1-u"),
@@ -477,15 +479,156 @@ def test_every_finetune_flag_reaches_the_config():
         "save_every": ("3", 3),
         "snapshot_every": ("4", 4),
         "val_max_tracklets": ("5", 5),
+        "logger": ("csv,json", "csv,json"),
+        "untrained": (None, True),  # switches
+        "allow_held_out": (None, True),
     }
-    switches = {"allow_held_out"}  # store_true flags
-    assert set(given) | switches == set(fields)
+    assert set(given) == set(fields)
     argv = []
     for dest, (text, _) in given.items():
-        argv += ["--" + dest.replace("_", "-"), text]
-    cfg = build_config(parser.parse_args(argv + ["--" + d.replace("_", "-") for d in switches]))
+        argv += ["--" + dest.replace("_", "-"), *([] if text is None else [text])]
+    cfg = build_config(parser.parse_args(argv))
     for dest, (_, expected) in given.items():
         value = getattr(cfg, dest)
         assert value == expected and type(value) is type(expected), dest
-    assert all(getattr(cfg, d) is True for d in switches)
-    assert build_config(parser.parse_args(argv)).allow_held_out is False
+
+
+# ---------------------------------------------------------------- issue 42's bad inputs 1-6
+
+
+def test_a_run_directory_of_another_command_is_refused(tmp_path, data):
+    """42.1: ``--overwrite`` never deletes another command's run (here a ``pointtrack train``
+    one), and ``train`` refuses a finetune directory."""
+    from training.pretrain import TrainingError, check_run_dir
+
+    train_dir = tmp_path / "train-run"
+    train_dir.mkdir()
+    for name in ("config.yaml", "last.pt", "log.jsonl"):
+        (train_dir / name).write_text("x")
+    for overwrite in (False, True):
+        with pytest.raises(ftc.FinetuneError, match="holds a `pointtrack train` run"):
+            run(tiny_cfg(), train_dir, data, overwrite=overwrite)
+    assert sorted(p.name for p in train_dir.iterdir()) == ["config.yaml", "last.pt", "log.jsonl"]
+    ft_dir = tmp_path / "ft-run"
+    run(tiny_cfg(timesteps=8), ft_dir, data)
+    with pytest.raises(TrainingError, match="holds a `pointtrack finetune` run"):
+        check_run_dir(ft_dir, resume=False)
+
+
+def _cli_config(argv: list[str]) -> ftc.FinetuneConfig:
+    import argparse
+
+    from training.commands.finetune import add_arguments, build_config
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    return build_config(parser.parse_args(argv))
+
+
+def test_resume_compares_what_the_user_passed_even_a_default(tmp_path, data):
+    """42.2: ``--resume --algo ppo`` on a group run is refused although ppo is the default;
+    ``--resume --out DIR`` alone continues DIR's run as configured."""
+    out = tmp_path / "run"
+    run(tiny_cfg(algo="group", group_size=4, timesteps=8), out, data)
+    alone = _cli_config(["--resume", "--out", str(out), "--timesteps", "16"])
+    assert (alone.algo, alone.group_size, alone.timesteps) == ("group", 4, 16)
+    changed = _cli_config(["--resume", "--out", str(out), "--algo", "ppo"])
+    with pytest.raises(ftc.FinetuneError, match="algo: saved 'group', given 'ppo'"):
+        ft.check_out_dir(out, changed, resume=True)
+
+
+def test_a_bare_learned_name_needs_untrained(tmp_path, data):
+    """42.3: ``p2b`` (no weights) is refused naming the flag; with ``untrained`` it trains the
+    random initialisation seeded by ``seed`` (two such runs start from the same weights)."""
+    from training.commands.finetune import flag_message
+
+    with pytest.raises(ftc.FinetuneError, match="has no weights") as exc:
+        run(tiny_cfg(tracker="p2b"), tmp_path / "x", data)
+    assert "--untrained" in flag_message(exc.value) and exc.value.fields == ("tracker",)
+    assert not (tmp_path / "x").exists()
+    cfg = tiny_cfg(tracker="p2b", untrained=True, timesteps=8)
+    assert ft.load_base(cfg).state_dict().keys() == trackers.load("p2b").state_dict().keys()
+    a, b = ft.load_base(cfg), ft.load_base(cfg)
+    assert all(torch.equal(v, b.state_dict()[k]) for k, v in a.state_dict().items())
+    assert run(cfg, tmp_path / "u", data).timesteps == 8
+
+
+def test_every_field_is_checked_before_anything_is_written_and_a_stateless_dir_starts_fresh(
+    tmp_path, data, monkeypatch
+):
+    """42.4: a bad value writes nothing; a run killed inside its first rollout (config and
+    log, no state) blocks neither a rerun nor ``--resume``: both start from the beginning."""
+    out = tmp_path / "run"
+    with pytest.raises(ftc.FinetuneError, match="log_std_init must be finite, got nan"):
+        run(tiny_cfg(log_std_init=float("nan")), out, data)
+    assert not out.exists()
+
+    def killed(self, local):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(ft.PPORun, "on_step", killed)
+    with pytest.raises(KeyboardInterrupt):
+        run(tiny_cfg(), out, data)
+    monkeypatch.undo()
+    assert (out / "config.json").exists() and not (out / "state.safetensors").exists()
+    assert run(tiny_cfg(timesteps=8), out, data).timesteps == 8
+    (out / "state.safetensors").unlink()
+    (out / "tracker.safetensors").unlink()
+    assert run(tiny_cfg(timesteps=8), out, data, resume=True).timesteps == 8
+    assert log_steps(out) == [8]
+
+
+def test_residual_on_a_tracker_with_extra_observation_keys_is_refused_before_training(
+    tmp_path, data
+):
+    """42.5: M2-Track reads ``previous_search``, which the residual tracker does not serve."""
+    out = tmp_path / "run"
+    with pytest.raises(ftc.FinetuneError, match="algo 'residual' cannot fine-tune.*previous"):
+        run(tiny_cfg(algo="residual", tracker="m2track-kitti1-u"), out, data)
+    assert not out.exists()
+
+
+def test_group_size_is_bounded(tmp_path, data):
+    """42.6: a huge group is one line, not an allocator traceback."""
+    with pytest.raises(ftc.FinetuneError, match=r"group_size must be <= 1024, got 1000000000"):
+        run(tiny_cfg(algo="group", group_size=10**9), tmp_path / "x", data)
+    assert not (tmp_path / "x").exists()
+
+
+# ---------------------------------------------------------------- issue 43: logger and config
+
+
+def test_sb3_logger_writes_the_update_scalars(tmp_path, data, monkeypatch):
+    import csv
+
+    out = tmp_path / "run"
+    run(tiny_cfg(algo="group", group_size=4, timesteps=16, logger="csv,json"), out, data)
+    rows = list(csv.DictReader((out / "sb3/from-00000000/progress.csv").open()))
+    assert [int(r["time/updates"]) for r in rows] == [1, 2]
+    for key in ("rollout/iou", "train/approx_kl", "train/clip_fraction", "time/steps_per_s"):
+        assert all(r[key] != "" and np.isfinite(float(r[key])) for r in rows), key
+    assert len((out / "sb3/from-00000000/progress.json").read_text().splitlines()) == 2
+    monkeypatch.setattr(ftc.importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ftc.FinetuneError, match=r"pip install 'pointtrack\[tensorboard\]'"):
+        tiny_cfg(logger="tensorboard").validate()
+    with pytest.raises(ftc.FinetuneError, match="logger must list some of"):
+        tiny_cfg(logger="csv,wandb").validate()
+
+
+def test_config_file_then_flags_then_set(tmp_path):
+    """43.5: an RL Zoo-style file < the flags given < ``--set``; bad keys and values name the
+    file or the key before any work."""
+    path = tmp_path / "group_ppo.yml"
+    path.write_text("algo: group\ngroup_size: 4\nn_timesteps: 64\nlearning_rate: 1e-3\n")
+    cfg = _cli_config(["--config", str(path)])
+    assert (cfg.algo, cfg.group_size, cfg.timesteps, cfg.lr) == ("group", 4, 64, 1e-3)
+    assert _cli_config(["--config", str(path), "--group-size", "6"]).group_size == 6
+    top = _cli_config(["--config", str(path), "--group-size", "6", "--set", "group_size=7"])
+    assert top.group_size == 7 and top.timesteps == 64
+    path.write_text("algo: group\ngroup_sise: 4\n")
+    with pytest.raises(ftc.FinetuneError, match=f"{path}.*unknown key 'group_sise'"):
+        _cli_config(["--config", str(path)])
+    with pytest.raises(ftc.FinetuneError, match="n_steps='many': must be an integer"):
+        _cli_config(["--set", "n_steps=many"])
+    with pytest.raises(ftc.FinetuneError, match="expected KEY=VALUE"):
+        _cli_config(["--set", "n_steps"])

@@ -231,7 +231,7 @@ def test_training_checkpoint_carries_train_provenance(tmp_path):
 
 
 def test_finetune_provenance_names_the_base_and_its_categories(tmp_path):
-    from training.finetune import FinetuneConfig
+    from training.rl.config import FinetuneConfig
 
     cfg = FinetuneConfig(tracker="p2b-kitti2-u", setting="kitti-1", data_root=str(tmp_path))
     prov = finetune_provenance(cfg, 4096, parent_entry(cfg.tracker))
@@ -469,7 +469,7 @@ def test_finetune_provenance_names_the_world_ensure_world_makes():
     """The generator digest a fine-tune records (computed without generating the world) is the
     one ``ensure_world`` names the world's directory by, as a training run records it."""
     from envs.synthetic import ensure_world
-    from training.finetune import FinetuneConfig
+    from training.rl.config import FinetuneConfig
 
     cfg = FinetuneConfig(tracker="p2b-kitti1-u", preset="tiny", world_seed=0)
     root = ensure_world(preset="tiny", sensor="hdl64", seed=0)

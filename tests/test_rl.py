@@ -362,8 +362,8 @@ def test_m2track_gradient_reaches_heads_through_the_frozen_second_stage(data):
     stages before the first trained one run without a graph."""
     policy = m2_ppo(data).policy
     obs = {k: torch.as_tensor(v) for k, v in stack(m2_observations(policy.tracker, data)).items()}
-    assert policy.tracker.seg.forward.__func__.__name__ == "_no_grad_forward"
-    assert policy.tracker.motion_net.forward.__func__.__name__ == "_no_grad_forward"
+    assert policy.tracker.seg.forward.__func__.__name__ == "frozen_forward"
+    assert policy.tracker.motion_net.forward.__func__.__name__ == "frozen_forward"
     assert "forward" not in vars(policy.tracker.box_net)  # its class's forward, with a graph
     mean, value = policy.mean_and_value(obs)
     mean.sum().backward()
@@ -466,3 +466,43 @@ def test_group_ppo_bad_inputs(data):
         group_ppo(data, "p2b-kitti1-u", group_size=1)
     with pytest.raises(TypeError, match="GroupPPO needs TrackerPolicy"):
         GroupPPO("MultiInputPolicy", rescaled(data), n_steps=4, batch_size=4)
+
+
+@pytest.mark.parametrize("train_parts", ["head", "fusion+head"])
+def test_group_ppo_cached_features_update_equals_uncached(data, train_parts):
+    """The update epochs reuse the rollout's frozen-stage outputs (issue 41 item 4): the same
+    means and log-probabilities as running those stages again (to 1e-6), after a real update
+    moved the trained parts; and the cached outputs are what the forward used (another state's
+    features give another mean)."""
+    base = trackers.load("gpt-kitti1-u")
+    runs = {}
+    for cache in (True, False):
+        model = group_ppo(
+            data, base, group_size=4, learning_rate=1e-3, cache_features=cache,
+            n_epochs=2, batch_size=4,
+            policy_kwargs={"tracker_lr_scale": 1.0, "train_parts": train_parts},
+        )  # fmt: skip
+        collect(model)
+        assert (model.rollout_buffer.features is not None) == cache
+        model.train()
+        runs[cache] = model
+    cached, plain = runs[True], runs[False]
+    buf = cached.rollout_buffer
+    base_state = base.state_dict()
+    assert any(  # the update trained something: the head below is not the base's
+        not torch.equal(v, base_state[k]) for k, v in cached.policy.tracker.state_dict().items()
+    )
+    for p, q in zip(
+        cached.policy.trainable_tracker_parameters,
+        plain.policy.trainable_tracker_parameters,
+        strict=True,
+    ):
+        torch.testing.assert_close(p, q, atol=1e-6, rtol=0)
+    obs = {k: torch.as_tensor(v) for k, v in buf.observations.items()}
+    rows = torch.arange(buf.size)
+    with torch.no_grad():
+        replayed = cached.policy.mean_and_value(obs, False, buf.features.select(rows))[0]
+        fresh = cached.policy.mean_and_value(obs, False)[0]
+        shifted = cached.policy.mean_and_value(obs, False, buf.features.select(rows.roll(1)))[0]
+    torch.testing.assert_close(replayed, fresh, atol=1e-6, rtol=0)
+    assert not torch.allclose(shifted, fresh, atol=1e-3)

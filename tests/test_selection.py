@@ -80,7 +80,8 @@ def test_score_candidates_pools_observed_categories_and_ranks(
     tiny_config, tmp_path, one_torch_thread
 ):
     from envs.tracking_env import make_synthetic_env
-    from training.evaluate import evaluate, load_tracker
+    from training.evaluate import evaluate
+    from training.loading import load_tracker
 
     candidates = ["previous_box", "p2b-kitti1-u"]
     rows = score_candidates(candidates, tiny_config, cache_dir=tmp_path)

@@ -4,23 +4,19 @@ A checkpoint is a ``torch.save`` dict (format :data:`CHECKPOINT_FORMAT`) holding
 their moving average (when the run keeps one), optimizer, scheduler, decorrelation memory, RNG
 states, epoch, step and the run's config. What this module guarantees:
 
-* **Atomic writes**: :func:`atomic_save` writes a temporary sibling (``.NAME.tmpPID``) and
-  renames it into place, so a killed process leaves either the previous file or the new one,
-  never a truncated one. Temporaries of dead processes are removed by :func:`remove_stale_temps`
-  when a run next uses the directory.
+* **Atomic writes**: :func:`atomic_save` writes through :func:`training.rundir.atomic_path`
+  (a temporary sibling, fsynced and renamed into place), so a killed process leaves either the
+  previous file or the new one, never a truncated one.
 * **No code runs on load**: every read is ``torch.load(weights_only=True)``.
 * **Validated reads**: :func:`read_checkpoint` refuses a file of another format naming the path;
   :func:`check_resumable` refuses a checkpoint of another tracker or config naming every differing
   key; :func:`load_weights` refuses non-finite weights naming the tensor.
-* **One log per run**: :func:`truncate_log` cuts ``log.jsonl`` back to the checkpoint's step on
-  resume, so a killed attempt's records never appear twice.
+The run directory around the checkpoints (fresh / resume, log truncation) is
+:mod:`training.rundir`'s.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
 import random
 from collections.abc import Mapping
 from pathlib import Path
@@ -32,8 +28,15 @@ import torch
 import trackers
 from trackers.provenance import UNKNOWN, Provenance
 from trackers.registry import find_checkpoint, read_safetensors
-from training.config import IDENTITY_EXEMPT, LEGACY_DEFAULTS, TrainConfig
+from training.config import (
+    IDENTITY_EXEMPT,
+    LEGACY_DEFAULTS,
+    TrainConfig,
+    checkpoint_env_options,
+    checkpoint_tracker_kwargs,
+)
 from training.provenance import train_provenance
+from training.rundir import atomic_path, file_sha256
 
 __all__ = [
     "checkpoint_provenance",
@@ -46,12 +49,9 @@ __all__ = [
     "is_training_checkpoint",
     "load_weights",
     "read_checkpoint",
-    "remove_stale_temps",
     "restore_rng_state",
     "rng_state",
     "tracker_from_checkpoint",
-    "unwritable_reason",
-    "truncate_log",
 ]
 
 CHECKPOINT_FORMAT = 1
@@ -61,51 +61,11 @@ class CheckpointError(ValueError):
     """A file that is not a usable training checkpoint (the message names the file)."""
 
 
-def _temp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
-
-
 def atomic_save(obj: Any, path: str | Path) -> Path:
-    """``torch.save(obj)`` to ``path`` through a temporary sibling and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_name(path)
-    try:
-        with open(tmp, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
-def remove_stale_temps(directory: str | Path) -> list[Path]:
-    """Delete the ``.NAME.tmpPID`` files in ``directory`` whose process is gone (left by a
-    ``SIGKILL`` between writing and renaming); returns the removed paths."""
-    removed = []
-    directory = Path(directory)
-    if not directory.is_dir():
-        return removed
-    for tmp in directory.glob(".*.tmp*"):
-        pid_text = tmp.name.rsplit(".tmp", 1)[1]
-        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
-            continue
-        tmp.unlink(missing_ok=True)
-        removed.append(tmp)
-    return removed
+    """``torch.save(obj)`` to ``path`` atomically (:func:`training.rundir.atomic_path`)."""
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
+    return Path(path)
 
 
 def rng_state() -> dict[str, Any]:
@@ -225,8 +185,6 @@ def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
     (``tracker.env_options``, :func:`training.config.checkpoint_env_options`) and the
     provenance it records (``tracker.provenance``, :mod:`training.provenance`), ready for
     ``trackers.save`` or evaluation."""
-    from training.config import checkpoint_env_options, checkpoint_tracker_kwargs
-
     ckpt = read_checkpoint(path)
     weights, config = _validated_weights(ckpt, path)
     model = trackers.make(config["tracker"], **checkpoint_tracker_kwargs(config))
@@ -234,46 +192,6 @@ def tracker_from_checkpoint(path: str | Path) -> torch.nn.Module:
     model.env_options = checkpoint_env_options(config)
     model.provenance = checkpoint_provenance(ckpt)
     return model.eval()
-
-
-def truncate_log(path: str | Path, step: int) -> int:
-    """Rewrite the JSON-lines log at ``path`` without the records a killed attempt wrote after
-    the checkpoint at ``step`` (records with a larger step, ``"data"`` records of that step, and
-    a torn last line); atomic. Returns the number of records dropped."""
-    path = Path(path)
-    if not path.is_file():
-        return 0
-    kept, dropped = [], 0
-    for line in path.read_text().splitlines():
-        try:
-            record = json.loads(line)
-            rstep = int(record["step"])
-        except (ValueError, KeyError, TypeError):
-            dropped += 1
-            continue
-        if rstep > step or (rstep == step and record.get("kind") == "data" and step > 0):
-            dropped += 1
-            continue
-        kept.append(line)
-    if dropped:
-        tmp = _temp_name(path)
-        tmp.write_text("".join(f"{line}\n" for line in kept))
-        os.replace(tmp, path)
-    return dropped
-
-
-def unwritable_reason(directory: str | Path) -> str | None:
-    """Why ``directory`` cannot be created or written (a probe file is written and removed), or
-    ``None`` when it can: callers turn the reason into their own one-line error."""
-    directory = Path(directory)
-    try:
-        directory.mkdir(parents=True, exist_ok=True)
-        probe = directory / f".write-test.tmp{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        return str(exc.strerror or exc)
-    return None
 
 
 def parent_entry(spec: str) -> dict[str, Any]:
@@ -289,9 +207,7 @@ def parent_entry(spec: str) -> dict[str, Any]:
         provenance = Provenance.from_json(meta.get("provenance"), f"{path}: provenance")
     else:  # a .pt tracker file: trackers.load reads it (and its provenance) safely
         provenance = trackers.load(path).provenance
-    with open(path, "rb") as f:
-        digest = hashlib.file_digest(f, "sha256").hexdigest()
-    return {"name": str(spec), "sha256": digest, "provenance": provenance}
+    return {"name": str(spec), "sha256": file_sha256(path), "provenance": provenance}
 
 
 def checkpoint_provenance(ckpt: Mapping[str, Any]) -> Provenance:

@@ -14,6 +14,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import trackers
+from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
+from trackers.registry import default_env_options
 from training.scalars import parse_formats
 
 __all__ = [
@@ -24,6 +27,7 @@ __all__ = [
     "TrainConfig",
     "checkpoint_env_options",
     "checkpoint_tracker_kwargs",
+    "coerce",
     "config_from_dict",
     "load_config",
     "parse_value",
@@ -35,8 +39,6 @@ def tracker_config(tracker: str, model_size: str = "default", extra: dict | None
     """The kwargs of ``trackers.make(tracker, ...)`` for a model size (the tracker class's
     ``sizes``, :func:`trackers.size_config`), updated by ``extra``: nested dicts merge, so
     ``{"head": {"positive_fraction": 0.2}}`` keeps the size's other head fields."""
-    import trackers
-
     return _merged(trackers.size_config(tracker, model_size), extra or {})
 
 
@@ -203,8 +205,6 @@ class TrainConfig:
         def bad(key: str, why: str) -> None:
             errors.append(f"{key}={getattr(self, key)!r}: {why}")
 
-        import trackers
-
         learned = trackers.available("learned")
         if self.tracker not in learned:
             bad("tracker", f"must be one of {', '.join(learned)}")
@@ -328,8 +328,6 @@ class TrainConfig:
 
     def search_enlargement(self) -> tuple[float, float]:
         """``(scale, offset_m)`` of the search region in training and in the val env."""
-        from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
-
         if self.tracker == "gpt" and self.recipe_value("gpt_search_region"):
             return GPT_SEARCH_ENLARGEMENT
         return (SEARCH_SCALE, SEARCH_OFFSET_M)
@@ -348,8 +346,6 @@ class TrainConfig:
         """The ``tracker.env_options`` a tracker trained with this config carries: all of
         :meth:`env_kwargs` when any differs from the env's default, else ``{}`` (recipe v1:
         nothing recorded, the tracker file is written exactly as before the options existed)."""
-        from trackers.registry import default_env_options
-
         kwargs = self.env_kwargs()
         defaults = default_env_options()
         if all(_same_option(kwargs[k], defaults[k]) for k in kwargs):
@@ -416,7 +412,13 @@ _HINTS = typing.get_type_hints(TrainConfig)
 
 def _check_type(key: str, value: Any) -> Any:
     """Coerce ``value`` to the field's type or raise a one-line reason."""
-    hint = _HINTS[key]
+    return coerce(_HINTS[key], value)
+
+
+def coerce(hint: Any, value: Any) -> Any:
+    """``value`` (from YAML or ``--set``) as a config field of type ``hint`` (``int``,
+    ``float``, ``str``, ``bool``, ``dict``, or one of them ``| None``); ``TypeError`` with a
+    one-line reason otherwise (the config systems of ``train`` and ``finetune`` share it)."""
     args = typing.get_args(hint)
     optional = isinstance(hint, types.UnionType) and type(None) in args
     base = next((a for a in args if a is not type(None)), hint) if optional else hint

@@ -53,6 +53,7 @@ from torch import nn
 
 from envs.weather.randomization import DomainRandomization
 from trackers import ops
+from trackers.backbone import Backbone
 
 __all__ = [
     "DRCT",
@@ -257,8 +258,6 @@ def tap_backbone(
 
 
 def _backbone_of(tracker: nn.Module):
-    from trackers.backbone import Backbone
-
     backbone = getattr(tracker, "backbone", None)
     if not isinstance(backbone, Backbone) or not callable(getattr(tracker, "loss", None)):
         raise ValueError(

@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import os
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -32,64 +31,20 @@ import numpy as np
 
 from envs.metrics import THRESHOLDS_IOU, THRESHOLDS_M, OPEAccumulator
 from envs.plotting import pyplot, save_figure
+from training.rundir import atomic_write_text
 
 __all__ = [
-    "UntrainedTrackerError",
     "env_option_groups",
     "env_options_for",
     "evaluate",
     "format_table",
     "json_safe",
-    "load_tracker",
     "observation_keys_for",
     "plot_curves",
     "save_report",
     "split_tracklets",
     "tracker_name",
 ]
-
-
-class UntrainedTrackerError(ValueError):
-    """A learned tracker named without weights, loaded without ``untrained=True``."""
-
-
-def load_tracker(name_or_path: str, *, untrained: bool = False, seed: int = 0) -> Any:
-    """A tracker by name, tracker file, shipped checkpoint name or training checkpoint.
-
-    * A ``pointtrack finetune --algo residual`` result (``residual.safetensors`` or its run
-      directory) loads as a :class:`training.finetune.ResidualTracker`.
-    * A training checkpoint (``RUN/best.pt``, ``RUN/last.pt``) gives the weights its run
-      validated (:func:`training.checkpoint.tracker_from_checkpoint`).
-    * Anything else goes through ``trackers.load``.
-    * A learned tracker's bare name (``"p2b"``) would be a randomly initialised model: refused
-      with :class:`UntrainedTrackerError` unless ``untrained=True``, and then initialised from
-      ``seed`` (the global torch RNG is left as it was), so two runs score the same.
-
-    Raises ``ValueError`` / ``FileNotFoundError`` naming ``name_or_path``.
-    """
-    import torch
-
-    import trackers
-    from trackers.registry import find_checkpoint
-    from training.checkpoint import is_training_checkpoint, tracker_from_checkpoint
-    from training.finetune import ResidualTracker
-
-    if ResidualTracker.is_residual_file(name_or_path):  # a `pointtrack finetune --algo residual`
-        return ResidualTracker.load(name_or_path)
-    if is_training_checkpoint(name_or_path):
-        return tracker_from_checkpoint(name_or_path)
-    if find_checkpoint(name_or_path) is not None:
-        return trackers.load(name_or_path)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        tracker = trackers.load(name_or_path)
-    if isinstance(tracker, torch.nn.Module) and not untrained:
-        raise UntrainedTrackerError(
-            f"tracker {name_or_path!r} has no weights: it would be a randomly initialised model. "
-            "Give a checkpoint (a shipped name such as p2b-kitti1-u, a tracker file, or a run's "
-            "best.pt), or pass --untrained to evaluate the random initialisation on purpose"
-        )
-    return tracker
 
 
 def observation_keys_for(trackers: Sequence[Any]) -> tuple[str, ...]:
@@ -522,12 +477,7 @@ def save_report(report: Mapping[str, Any], path: str | Path) -> Path:
 
     Written to a temporary file and renamed, so a killed run never leaves a truncated report (the
     selection in :mod:`training.selection` reuses reports as a cache)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(json_safe(dict(report)), indent=2) + "\n")
-    os.replace(tmp, path)
-    return path
+    return atomic_write_text(path, json.dumps(json_safe(dict(report)), indent=2) + "\n")
 
 
 def plot_curves(

@@ -30,6 +30,7 @@ from collections.abc import Callable, Mapping
 
 import torch
 
+from trackers.base import MatchingTracker
 from trackers.head import proposal_labels
 
 __all__ = ["LOSS_REDUCTIONS", "loss_counts", "pooled", "pooled_objective"]
@@ -107,8 +108,6 @@ def pooled_objective(
     """The ``"pooled"`` objective (module docstring) of ``model.loss``'s per-sample ``losses``;
     under DDP (``sum_over_ranks``: an in-place all-reduce sum, ``world`` processes) pooled over
     the global batch."""
-    from trackers.base import MatchingTracker
-
     if not isinstance(model, MatchingTracker):
         total = losses["total"]
         return _pooled_terms([total], [torch.ones_like(total)], weights, sum_over_ranks, world)[0]

@@ -66,16 +66,21 @@ from training.checkpoint import (
     load_weights,
     parent_entry,
     read_checkpoint,
-    remove_stale_temps,
     restore_rng_state,
     rng_state,
     tracker_from_checkpoint,
-    truncate_log,
-    unwritable_reason,
 )
 from training.config import TrainConfig
 from training.losses import pooled_objective
 from training.provenance import train_provenance
+from training.rundir import (
+    TRAIN_LAYOUT,
+    RunDirError,
+    atomic_write_text,
+    prepare_run_dir,
+    remove_stale_temps,
+    truncate_log,
+)
 from training.sam import SAM
 from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.weighting import FeatureDecorrelation, effective_sample_size, pool_features
@@ -754,13 +759,12 @@ class Trainer:
                     )
                 )
         elif resume and self.main:
-            # the log of an attempt killed before its first checkpoint: it starts again
-            (self.out / "log.jsonl").unlink(missing_ok=True)
+            # an attempt killed before its first checkpoint (check_run_dir removed its log)
             log.info(f"no checkpoint in {self.out} yet; starting its run from the beginning")
         if self.main:
             self.out.mkdir(parents=True, exist_ok=True)
             remove_stale_temps(self.out)
-            _write_text_atomic(self.out / "config.yaml", _yaml(cfg.to_dict()))
+            atomic_write_text(self.out / "config.yaml", _yaml(cfg.to_dict()))
         self._open_logs()
         self._write(
             {
@@ -826,41 +830,16 @@ def _yaml(values: dict[str, Any]) -> str:
     return yaml.safe_dump(values, sort_keys=False)
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def check_run_dir(out: str | Path, resume: bool) -> Path | None:
     """Decide what a run into ``out`` does before anything is built: the ``last.pt`` to resume
-    from, or ``None`` for a fresh run.
-
-    A fresh run (``resume=False``) refuses a directory that already holds a run (``last.pt`` or
-    ``config.yaml``). ``resume=True`` refuses a directory without either (a typo would otherwise
-    start a new run); with ``config.yaml`` but no ``last.pt`` (killed in the first epoch) the run
-    starts from the beginning. Also refuses an ``out`` that cannot be written.
-    Raises :class:`TrainingError`."""
-    out = Path(out)
-    last, config = out / "last.pt", out / "config.yaml"
-    if resume:
-        if last.is_file():
-            return last
-        if not config.is_file():
-            raise TrainingError(
-                f"nothing to resume in {out}: it holds no last.pt and no "
-                "config.yaml (check --out, or drop --resume to start a run)"
-            )
-    elif last.exists() or config.exists():
-        held = last if last.exists() else config
-        raise TrainingError(
-            f"{out} already holds a run ({held.name} exists): pass --resume to "
-            "continue it, or choose another --out"
-        )
-    why = unwritable_reason(out)
-    if why is not None:
-        raise TrainingError(f"cannot write to the run directory {out}: {why}")
-    return None
+    from, or ``None`` for a run from the beginning (:func:`training.rundir.prepare_run_dir`
+    with :data:`~training.rundir.TRAIN_LAYOUT`: a fresh run refuses a directory holding a run,
+    ``resume=True`` one holding nothing, and a directory killed in its first epoch (a
+    ``config.yaml``, no ``last.pt``) starts again). Raises :class:`TrainingError`."""
+    try:
+        return prepare_run_dir(out, TRAIN_LAYOUT, resume=resume)
+    except RunDirError as exc:
+        raise TrainingError(str(exc)) from None
 
 
 def check_device(device: str) -> None:

@@ -134,10 +134,10 @@ def train_provenance(
 
 def finetune_provenance(cfg: Any, steps: int, parent: dict[str, Any]) -> Provenance:
     """The provenance of a ``pointtrack finetune`` result after ``steps`` env steps
-    (``cfg``: a ``training.finetune.FinetuneConfig``): the train split of its world, its
+    (``cfg``: a ``training.rl.config.FinetuneConfig``): the train split of its world, its
     setting's observed categories (what ``train_env_factory`` serves), the base as ``parent``
     (``training.checkpoint.parent_entry(cfg.tracker)``).
-    A library caller that passes its own ``make_env`` to ``training.finetune.finetune`` must
+    A library caller that passes its own ``make_env`` to ``training.rl.run.finetune`` must
     make ``cfg`` describe that env: the record is ``cfg``'s."""
     from dataclasses import asdict
 

@@ -20,7 +20,6 @@ resumes where it stopped and adding a candidate scores only the new one.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import re
@@ -31,7 +30,9 @@ from typing import Any
 
 import trackers
 from trackers.base import Tracker
+from training.loading import load_tracker
 from training.provenance import check_candidates, selected_provenance, selection_round
+from training.rundir import file_sha256, remove_stale_temps
 
 logger = logging.getLogger(__name__)
 
@@ -147,12 +148,10 @@ def pooled(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
 def load_candidate(candidate: str) -> Any:
     """A tracker from a training checkpoint (``best.pt`` / ``last.pt``: the weights its run
     validated, see ``training.checkpoint.load_weights``) or anything ``trackers.load`` takes
-    (:func:`training.evaluate.load_tracker`; a learned tracker's bare name is refused: it has no
+    (:func:`training.loading.load_tracker`; a learned tracker's bare name is refused: it has no
     weights to select).
 
     Raises ``ValueError`` naming the candidate when it cannot be read."""
-    from training.evaluate import load_tracker
-
     try:
         return load_tracker(candidate)
     except (OSError, ValueError, KeyError) as exc:
@@ -166,7 +165,7 @@ def _candidate_digest(candidate: str) -> str:
     path = find_checkpoint(candidate)
     if path is None:
         return f"name:{candidate}"
-    return "sha256:" + hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return "sha256:" + file_sha256(path)
 
 
 def _refuse_same_file(digests: Mapping[str, str]) -> None:
@@ -242,8 +241,6 @@ def score_candidates(
     _refuse_same_file(digests)
     cache = Path(cache_dir) if cache_dir is not None else None
     if cache is not None:  # temporaries of a killed selection (reports are renamed into place)
-        from training.checkpoint import remove_stale_temps
-
         for part in config.parts:
             remove_stale_temps(cache / f"w{part.world_seed}-{part.split}")
     per_part: dict[str, dict[str, dict[str, float]]] = {c: {} for c in candidates}

@@ -135,11 +135,11 @@ def run(args: argparse.Namespace) -> int:
         env_options_for,
         evaluate,
         format_table,
-        load_tracker,
         observation_keys_for,
         plot_curves,
         save_report,
     )
+    from training.loading import load_tracker
 
     if args.max_tracklets is not None and args.max_tracklets < 1:
         raise SystemExit(f"--max-tracklets must be >= 1, got {args.max_tracklets}")

@@ -249,7 +249,7 @@ def check_out(args: argparse.Namespace) -> None:
     if args.out:
         from pathlib import Path
 
-        from training.checkpoint import remove_stale_temps, unwritable_reason
+        from training.rundir import remove_stale_temps, unwritable_reason
 
         out = Path(args.out)
         why = unwritable_reason(out)
@@ -260,7 +260,7 @@ def check_out(args: argparse.Namespace) -> None:
 
 def load_trackers(args: argparse.Namespace) -> dict[str, Any]:
     """``{name: tracker}`` for every ``--tracker``, all loaded (and so validated) up front."""
-    from training.evaluate import load_tracker
+    from training.loading import load_tracker
 
     if len(set(args.tracker)) != len(args.tracker):
         raise SystemExit(f"pointtrack eval: a tracker is listed twice: {args.tracker}")

@@ -4,8 +4,9 @@ Examples::
 
     pointtrack finetune --tracker p2b-kitti1-u --algo ppo --timesteps 4096 --num-envs 4 \\
         --out runs/ft-p2b
-    pointtrack finetune --tracker p2b-kitti1-u --timesteps 8192 --num-envs 4 --out runs/ft-p2b \\
-        --resume
+    pointtrack finetune --tracker p2b-kitti1-u --timesteps 8192 --out runs/ft-p2b --resume
+    pointtrack finetune --config hyperparams/group_ppo.yml --set group_size=16 \\
+        --logger tensorboard,csv --out runs/ft-grp
     pointtrack eval --tracker runs/ft-p2b/tracker.safetensors --preset default --setting kitti-1
 
 ``--algo ppo`` trains the tracker itself (``training.rl.TrackerPolicy``) on the train split's
@@ -13,35 +14,64 @@ observed categories and writes ``OUT/tracker.safetensors``, an ordinary tracker 
 ``--algo group`` trains the same policy from ``--group-size`` sampled actions per state
 (``training.rl.GroupPPO``); ``--algo residual`` trains a small residual policy on top of the
 frozen tracker and writes ``OUT/residual.safetensors`` (also accepted by
-``pointtrack eval --tracker``). See
-:mod:`training.finetune` and docs/rl.md.
+``pointtrack eval --tracker``). See :mod:`training.rl.run` and docs/rl.md.
+
+Config precedence: :class:`~training.rl.config.FinetuneConfig`'s defaults < (with ``--resume``)
+the run's saved ``OUT/config.json`` < ``--config FILE.yml`` (an RL Zoo-style YAML mapping of
+config keys) < the flags given < ``--set key=value``. Only what the user gave counts: on
+``--resume`` a flag given with the saved value continues the run, one given with another value
+is refused (except the resumable ones). Everything is validated before any work; the resolved
+config is saved as ``OUT/config.json``.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import json
+import re
 import sys
+from pathlib import Path
+from typing import Any
+
+from training.config import parse_value
+from training.rl.config import (
+    ALGOS,
+    BASELINES,
+    LOGGER_FORMATS,
+    MAX_GROUP_SIZE,
+    FinetuneConfig,
+    FinetuneError,
+    config_from_values,
+    read_hyperparams,
+)
+from training.rl.policy import ACTION_MODES, CRITICS, TRAIN_PARTS
+from training.rl.run import finetune
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Declare this command's flags (defaults: :class:`training.finetune.FinetuneConfig`)."""
-    from training.finetune import ALGOS, BASELINES, FinetuneConfig
-    from training.rl import ACTION_MODES, CRITICS, TRAIN_PARTS
-
+    """Declare this command's flags. A config flag left out is absent from the parsed
+    namespace (``argparse.SUPPRESS``), so :func:`build_config` knows what the user gave; its
+    help names :class:`FinetuneConfig`'s default."""
     d = FinetuneConfig()
-    parser.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     add = parser.add_argument
 
-    def config_flag(name: str, help: str, **kwargs) -> None:
-        """``--name`` sets the config field ``name`` (dashes for underscores); its default,
-        and the type of a number, come from :class:`FinetuneConfig`."""
+    def config_flag(name: str, help: str, **kwargs: Any) -> None:
+        """``--name`` sets the config field ``name`` (dashes for underscores); the type of a
+        number comes from :class:`FinetuneConfig`."""
         dest = name.replace("-", "_")
         default = getattr(d, dest)
-        if isinstance(default, (int, float)):
+        if isinstance(default, int | float) and not isinstance(default, bool):
             kwargs["type"] = type(default)
-        add(f"--{name}", dest=dest, default=default, help=help, **kwargs)
+        add(
+            f"--{name}",
+            dest=dest,
+            default=argparse.SUPPRESS,
+            help=f"{help} (default: {default!r})",
+            **kwargs,
+        )
 
-    config_flag("tracker", "a shipped checkpoint name or a tracker checkpoint file")
+    config_flag("tracker", "a shipped checkpoint name, a tracker file or a run's best.pt")
     config_flag(
         "algo",
         "ppo: train the tracker as the policy; group: the same with --group-size sampled "
@@ -80,7 +110,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "the same state (self_critical; needs --gamma 0)",
         choices=BASELINES,
     )
-    config_flag("group-size", "--algo group: sampled actions scored per state")
+    config_flag(
+        "group-size", f"--algo group: sampled actions scored per state (<= {MAX_GROUP_SIZE})"
+    )
     config_flag("log-std-init", "initial log standard deviation (normalised action units)")
     config_flag("warmup-rollouts", "first updates train the critic only (actor frozen)")
     config_flag("target-kl", "stop an update's epochs when approx_kl exceeds 1.5x this")
@@ -98,72 +130,103 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "val-max-tracklets",
         "quick val check of base vs fine-tuned on this many tracklets (must be >= 1)",
     )
+    config_flag(
+        "logger",
+        f"SB3 logger outputs under OUT/sb3, comma-separated: some of {', '.join(LOGGER_FORMATS)} "
+        "(tensorboard --logdir OUT/sb3)",
+    )
+    add(
+        "--untrained",
+        dest="untrained",
+        action="store_const",
+        const=True,
+        default=argparse.SUPPRESS,
+        help="accept a learned tracker's bare name (fine-tune a random initialisation)",
+    )
     add("--no-val", action="store_true", help="skip the quick val check")
+    add("--config", help="RL Zoo-style YAML file of config keys (n_timesteps, n_envs, ... too)")
+    add(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any config key (repeatable; beats the flags and --config), e.g. --set group_size=16",
+    )
     add("--out", default="runs/finetune", help="run directory")
     add(
         "--resume",
         action="store_true",
         help="continue the run in --out with its saved config; flags given with other values "
         "must match it, except --timesteps (extends), --device, --threads, --save-every, "
-        "--snapshot-every, --val-max-tracklets",
+        "--snapshot-every, --val-max-tracklets, --logger",
     )
     add("--overwrite", action="store_true", help="replace a run already in --out")
     add(
         "--allow-held-out",
+        dest="allow_held_out",
         action="store_true",
+        default=argparse.SUPPRESS,
         help="train in an env that serves a category the base file holds out (its setting's "
         "unseen ones; refused without this flag)",
     )
     add("--no-progress", action="store_true", help="no progress bar")
 
 
-def build_config(args: argparse.Namespace):
-    """The validated :class:`~training.finetune.FinetuneConfig` of these arguments."""
-    import dataclasses
-
-    from training.finetune import FinetuneConfig, FinetuneError
-
-    if args.val_max_tracklets < 1:
-        raise FinetuneError(
-            f"--val-max-tracklets must be >= 1, got {args.val_max_tracklets} "
-            f"(use --no-val to skip the val check)"
-        )
+def _given(args: argparse.Namespace) -> dict[str, Any]:
+    """The config values the user gave: ``--config`` < flags < ``--set`` (validated types)."""
     fields = {f.name for f in dataclasses.fields(FinetuneConfig)}
-    values = {k: v for k, v in vars(args).items() if k in fields}
+    values: dict[str, Any] = {}
+    if args.config:
+        values.update(read_hyperparams(args.config))
+        config_from_values(values, where=f"config file {args.config}")  # its own errors first
+    values.update({k: v for k, v in vars(args).items() if k in fields})
     if args.no_val:
         values["val_max_tracklets"] = 0
-    if args.resume:
-        values = {**_saved_config(args.out, fields), **_changed(values)}
-    cfg = FinetuneConfig(**values)
+    for item in args.set:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise FinetuneError(f"--set {item!r}: expected KEY=VALUE")
+        values[key.strip()] = parse_value(text) if text.strip() else ""
+    return values
+
+
+def build_config(args: argparse.Namespace) -> FinetuneConfig:
+    """The validated :class:`~training.rl.config.FinetuneConfig` of these arguments (see the
+    module docstring for the precedence)."""
+    given = _given(args)
+    if given.get("val_max_tracklets", 1) < 1 and not args.no_val:
+        raise FinetuneError(
+            f"val_max_tracklets must be >= 1, got {given['val_max_tracklets']} "
+            f"(use --no-val to skip the val check)",
+            ["val_max_tracklets"],
+        )
+    base = config_from_values(_saved_config(args.out)) if args.resume else None
+    cfg = config_from_values(given, base)
     cfg.validate()
     return cfg
 
 
-def _saved_config(out: str, fields: set[str]) -> dict:
+def _saved_config(out: str) -> dict[str, Any]:
     """The config of the run in ``out`` (``config.json``), {} when there is none (``finetune``
     then refuses the resume, naming the missing state)."""
-    import json
-    from pathlib import Path
-
     path = Path(out) / "config.json"
     if not path.is_file():
         return {}
     try:
         saved = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
-        from training.finetune import FinetuneError
-
         raise FinetuneError(f"cannot read {path}: {exc}") from None
+    fields = {f.name for f in dataclasses.fields(FinetuneConfig)}
     return {k: v for k, v in saved.items() if k in fields}
 
 
-def _changed(values: dict) -> dict:
-    """The flags given with a value other than their default: on ``--resume`` the others come
-    from the saved run, so ``--resume --out DIR`` alone continues DIR's run as configured."""
-    from training.finetune import FinetuneConfig
-
-    defaults = FinetuneConfig().to_dict()
-    return {k: v for k, v in values.items() if v != defaults.get(k)}
+def flag_message(exc: FinetuneError) -> str:
+    """``exc``'s message with each config field it names written as its flag."""
+    message = str(exc)
+    for name in exc.fields:
+        flag = "--" + name.replace("_", "-")
+        message = re.sub(rf"(?<![\w-]){re.escape(name)}(?![\w-])", flag, message)
+    return message
 
 
 def _fail(message: str) -> SystemExit:
@@ -173,8 +236,6 @@ def _fail(message: str) -> SystemExit:
 
 
 def run(args: argparse.Namespace) -> int:
-    from training.finetune import FinetuneError, finetune
-
     try:
         cfg = build_config(args)
         result = finetune(
@@ -185,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
         )
     except FinetuneError as exc:
-        raise _fail(str(exc)) from None
+        raise _fail(flag_message(exc)) from None
     except OSError as exc:  # an unwritable --out, a missing data root
         raise _fail(f"{type(exc).__name__}: {exc}") from None
     print(

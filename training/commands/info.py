@@ -30,13 +30,12 @@ def run(args: argparse.Namespace) -> int:
 
     from trackers.registry import find_checkpoint
     from training.checkpoint import parent_entry
+    from training.loading import load_tracker
 
     for spec in args.files:
         path = find_checkpoint(spec)
         if path is None:
             raise SystemExit(f"no checkpoint file or shipped checkpoint named {spec!r}")
-        from training.evaluate import load_tracker
-
         tracker = load_tracker(spec)  # validates the file (digest, weights, config)
         entry = parent_entry(spec)
         if args.json:

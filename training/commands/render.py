@@ -72,7 +72,7 @@ def check_args(args: argparse.Namespace) -> None:
     """Refuse a bad ``--out`` / count / weather before anything is built (one line)."""
     from pathlib import Path
 
-    from training.checkpoint import unwritable_reason
+    from training.rundir import unwritable_reason
 
     suffixes = VIEWERS[args.viewer]
     out = Path(args.out)

@@ -53,17 +53,15 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
   A frozen stage between trained ones (M2-Track's second PointNet) keeps its graph.
 * :meth:`TrackerPolicy.freeze_actor` stops the actor's gradients (tracker and log-std) for a
   critic warm-up.
-* :class:`SelfCriticalReward` (a ``VecEnv`` wrapper) replaces the learned critic's baseline by
-  the reward of the policy's mean action at the same state, for ``gamma=0`` (the learned critic
-  explained ~0 of the return's variance in every run of docs/rl.md).
-* :class:`GroupPPO` (PPO's clipped update on several sampled actions per state) is the other
-  answer to that: at every visited state it scores ``group_size`` sampled actions with the env's
-  reward (without stepping) and takes each one's advantage against the group's mean reward, the
-  group-relative baseline of GRPO (Shao et al., "DeepSeekMath", 2024), without its division by
-  the group's standard deviation (Liu et al., "Understanding R1-Zero-Like Training", 2025).
+* **The distribution API** algorithms use (:class:`training.rl.group_ppo.GroupPPO` reads
+  nothing else): :meth:`TrackerPolicy.mean_and_value` (the mean, one tracker forward),
+  :meth:`TrackerPolicy.gaussian` (the action distribution around any mean, broadcast over
+  leading dimensions), :attr:`TrackerPolicy.max_action` (the env's units) and
+  :attr:`TrackerPolicy.last_mean`.
 * Any SB3 actor-critic algorithm can drive it (PPO, A2C: ``optimizer_class`` is wrapped by
   :func:`lr_scaled`). Save the result with ``trackers.save(model.policy.tracker, path)`` or
-  through ``training.finetune`` (safetensors): SB3's zips load by unpickling.
+  through ``pointtrack finetune`` (:mod:`training.rl.run`, safetensors): SB3's zips load by
+  unpickling.
 """
 
 from __future__ import annotations
@@ -71,31 +69,26 @@ from __future__ import annotations
 import copy
 import functools
 import math
-import types
 from typing import Any
 
 import numpy as np
 import torch
 from gymnasium import spaces
-from stable_baselines3 import PPO
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.distributions import DiagGaussianDistribution
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
-from stable_baselines3.common.utils import obs_as_tensor
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 from torch import nn
 
+import trackers
 from trackers.base import OBS_SHAPES, Tracker
+from trackers.decision import decide
+from training.rl.features import FrozenStages, StageFeatures
 
 __all__ = [
     "ACTION_MODES",
     "CRITICS",
     "TRAIN_PARTS",
-    "GroupPPO",
-    "GroupRollout",
     "ScaledAdam",
-    "SelfCriticalReward",
     "TrackerPolicy",
     "lr_scaled",
     "resolve_tracker",
@@ -167,8 +160,6 @@ def resolve_tracker(tracker: Any) -> Tracker:
     """A learned tracker from a shipped name, a checkpoint path or a :class:`Tracker`; a
     ``TypeError`` for anything without weights (a baseline such as ``previous_box``)."""
     if isinstance(tracker, str | bytes) or hasattr(tracker, "__fspath__"):
-        import trackers
-
         tracker = trackers.load(tracker)
     if not isinstance(tracker, Tracker):
         name = getattr(tracker, "name", type(tracker).__name__)
@@ -221,6 +212,9 @@ class TrackerPolicy(ActorCriticPolicy):
         if not math.isfinite(log_std_init):
             raise ValueError(f"log_std_init must be finite, got {log_std_init!r}")
         model = copy.deepcopy(resolve_tracker(tracker)).eval()
+        # one batched forward for the K sub-envs' observations (and a minibatch): the policy's
+        # outputs then differ from tracker.act's one-at-a-time ones by float rounding only
+        model.batch_invariant = False
         _check_spaces(observation_space, action_space, model)
         super().__init__(
             observation_space,
@@ -259,7 +253,7 @@ class TrackerPolicy(ActorCriticPolicy):
             p.requires_grad_(False)
         for p in self._trainable:
             p.requires_grad_(True)
-        self._no_grad_frozen_stages()
+        self.frozen_stages = FrozenStages(self._frozen_prefix())
         self._actor_frozen = False
         # the mean of the last forward, (B, 4) [-1, 1] units: SelfCriticalReward reads it
         self.last_mean: torch.Tensor | None = None
@@ -290,7 +284,7 @@ class TrackerPolicy(ActorCriticPolicy):
     def _get_constructor_parameters(self) -> dict[str, Any]:
         raise NotImplementedError(
             "TrackerPolicy is not saved through SB3 (it would be pickled); "
-            "use training.finetune, which writes safetensors"
+            "use training.rl.run.finetune, which writes safetensors"
         )
 
     def forward(
@@ -318,15 +312,17 @@ class TrackerPolicy(ActorCriticPolicy):
 
     # ------------------------------------------------------------------ the actor and critic
     def mean_and_value(
-        self, obs: Any, value: bool = True
+        self, obs: Any, value: bool = True, features: StageFeatures | None = None
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Action mean ``(B, 4)`` in ``[-1, 1]`` units and value ``(B,)`` (None unless
-        ``value``) from one tracker forward. Raises ``FloatingPointError`` on a non-finite
-        mean or value (broken weights must stop a run, not be trained on)."""
-        from trackers.decision import decide
-
+        ``value``) from one batched tracker forward; ``features``: the frozen stages' outputs
+        for these observations, recorded in the rollout (:attr:`frozen_stages`), so that only
+        the trained stages run. Raises ``FloatingPointError`` on a non-finite mean or value
+        (broken weights must stop a run, not be trained on)."""
         batch, _ = self.tracker.prepare(obs)
-        out = self.tracker(batch)
+        self.frozen_stages.start_forward(batch[self.tracker.point_keys[0]].shape[0])
+        with self.frozen_stages.replaying(features):
+            out = self.tracker(batch)
         soft = None  # "best": the action tracker.act executes
         if self.action_mode == "soft":
             proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
@@ -352,6 +348,18 @@ class TrackerPolicy(ActorCriticPolicy):
             raise FloatingPointError("TrackerPolicy: the value head's output is NaN or inf")
         return mean, v
 
+    def gaussian(self, mean: torch.Tensor) -> torch.distributions.Normal:
+        """The action distribution around ``mean (..., 4)`` ([-1, 1] units): independent
+        normals with the learned state-independent std (broadcast to ``mean``'s shape; a
+        ``(B, 1, 4)`` mean scores ``(B, K, 4)`` samples). Differentiable in ``mean`` and the
+        log-std."""
+        return torch.distributions.Normal(mean, torch.exp(self.log_std))
+
+    @property
+    def action_std(self) -> torch.Tensor:
+        """The exploration's standard deviation ``(4,)`` in [-1, 1] units."""
+        return torch.exp(self.log_std)
+
     # ------------------------------------------------------------------ parameter control
     def _select_trainable(self) -> list[nn.Parameter]:
         parts = {
@@ -368,17 +376,19 @@ class TrackerPolicy(ActorCriticPolicy):
             params.extend(getattr(self.tracker, name).parameters())
         return params
 
-    def _no_grad_frozen_stages(self) -> None:
-        """Run the tracker's frozen stages that come before its first trained one (children in
-        registration order, which is execution order) under ``no_grad``: no gradient could pass
-        through them to a trained stage, and the update's forward skips their autograd graph
-        (P2B's fusion then takes its fast eval path, the one the rollout takes: identical
-        log-probabilities in rollout and update)."""
+    def _frozen_prefix(self) -> list[nn.Module]:
+        """The tracker's frozen stages that come before its first trained one (children in
+        registration order, which is execution order): they run under ``no_grad`` (no gradient
+        could pass through them to a trained stage, and the update's forward skips their
+        autograd graph; P2B's fusion then takes its fast eval path, the one the rollout takes:
+        identical log-probabilities in rollout and update), and their outputs can be cached
+        from the rollout for the update (:mod:`training.rl.features`)."""
+        prefix = []
         for _, child in self.tracker.named_children():
             if any(p.requires_grad for p in child.parameters()):
                 break
-            # a bound method (not a closure): a deepcopy of the tracker rebinds it
-            child.forward = types.MethodType(_no_grad_forward, child)
+            prefix.append(child)
+        return prefix
 
     @property
     def trainable_tracker_parameters(self) -> list[nn.Parameter]:
@@ -395,237 +405,6 @@ class TrackerPolicy(ActorCriticPolicy):
     @property
     def actor_frozen(self) -> bool:
         return self._actor_frozen
-
-
-class SelfCriticalReward(VecEnvWrapper):
-    """Each sub-env's reward minus the reward of the policy's *mean* action at the same state:
-    ``r(s, a) - r(s, mu(s))``, the self-critical baseline of Rennie et al., "Self-critical
-    Sequence Training for Image Captioning" (CVPR 2017), here for one-step returns.
-
-    Why: with a small exploration noise the reward's variance between states (a lost target
-    against a tracked one) dwarfs its variance between the actions tried at one state, and a
-    learned critic that cannot predict a tracker's IoU from its points leaves that variance in
-    the advantage. The mean action's own reward is an exact per-state baseline (the env
-    computes it without stepping, :meth:`envs.tracking_env.TrackingEnv.reward_for_action`),
-    so the advantage keeps only the effect of the exploration. It is unbiased for one-step
-    returns only: use it with ``gamma=0`` (each step's reward is then its return; PPO's critic
-    learns a value near 0).
-
-    ``venv``: the ``RescaleAction(env, -1, 1)`` sub-envs of :class:`TrackerPolicy`; ``policy``
-    (settable later, as SB3 builds it after the env): the policy whose last forward chose the
-    actions (:attr:`TrackerPolicy.last_mean`). Each step's ``info["baseline_reward"]`` records
-    the baseline.
-    """
-
-    def __init__(self, venv: VecEnv, policy: TrackerPolicy | None = None) -> None:
-        super().__init__(venv)
-        self.policy = policy
-        self._baseline = np.zeros(self.num_envs)
-
-    def reset(self) -> Any:
-        return self.venv.reset()
-
-    def step_async(self, actions: np.ndarray) -> None:
-        mean = None if self.policy is None else self.policy.last_mean
-        if mean is None or mean.shape != (self.num_envs, 4):
-            raise RuntimeError(
-                "SelfCriticalReward: step() needs the policy's forward on this step's "
-                "observations first (PPO's rollouts do that; set wrapper.policy = model.policy)"
-            )
-        self.policy.last_mean = None  # one baseline per forward
-        env_units = (mean * self.policy.max_action.to(mean.dtype)).cpu().numpy()
-        self._baseline = np.array(
-            [
-                self.venv.env_method("reward_for_action", env_units[i], indices=i)[0]
-                for i in range(self.num_envs)
-            ]
-        )
-        self.venv.step_async(actions)
-
-    def step_wait(self) -> Any:
-        obs, rewards, dones, infos = self.venv.step_wait()
-        for info, baseline in zip(infos, self._baseline, strict=True):
-            info["baseline_reward"] = float(baseline)
-        return obs, (rewards - self._baseline).astype(rewards.dtype), dones, infos
-
-
-class GroupRollout:
-    """What :class:`GroupPPO` collects for one update: for each of the ``S = T * M`` visited
-    states (``T`` steps of ``M`` sub-envs) its observation, ``K`` sampled actions ``actions
-    (S, K, 4)`` in ``[-1, 1]`` units, their ``log_probs (S, K)`` under the policy that sampled
-    them, their ``rewards (S, K)`` and the group-centred ``advantages (S, K)`` (each reward minus
-    its state's mean over the ``K``)."""
-
-    def __init__(self) -> None:
-        self.reset()
-
-    def reset(self) -> None:
-        self._steps: list[tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]] = []
-        self.observations: dict[str, np.ndarray] = {}
-        self.actions = self.log_probs = self.rewards = self.advantages = np.zeros((0, 0))
-
-    def add(
-        self,
-        obs: dict[str, np.ndarray],
-        actions: np.ndarray,
-        log_probs: np.ndarray,
-        rewards: np.ndarray,
-    ) -> None:
-        """One step of the ``M`` sub-envs: ``obs`` (dict of ``(M, ...)``), ``actions (M, K, 4)``,
-        ``log_probs (M, K)``, ``rewards (M, K)``."""
-        self._steps.append(({k: np.array(v) for k, v in obs.items()}, actions, log_probs, rewards))
-
-    def finish(self) -> None:
-        """Stack the steps into the ``(S, ...)`` arrays and compute the advantages."""
-        obs = [step[0] for step in self._steps]
-        self.observations = {k: np.concatenate([o[k] for o in obs]) for k in obs[0]}
-        self.actions, self.log_probs, self.rewards = (
-            np.concatenate([step[i] for step in self._steps]) for i in (1, 2, 3)
-        )
-        self.advantages = self.rewards - self.rewards.mean(axis=1, keepdims=True)
-        self._steps = []
-
-    @property
-    def size(self) -> int:
-        return len(self.rewards)
-
-
-class GroupPPO(PPO):
-    """PPO's clipped update on ``group_size`` sampled actions per visited state, for one-step
-    rewards, with :class:`TrackerPolicy`.
-
-    Rollout: at each step the policy's mean ``mu(s)`` (one batch-``M`` tracker forward) and
-    ``K = group_size`` actions sampled from ``N(mu(s), std)``; the env scores each without
-    stepping (:meth:`envs.tracking_env.TrackingEnv.reward_for_action`) and then steps with the
-    mean action, so the visited states are the deployed (deterministic) tracker's own. Update:
-    each sample's advantage is its reward minus its state's mean over the ``K`` (divided by the
-    minibatch's standard deviation when ``normalize_advantage``), in PPO's clipped surrogate
-    with the usual ``target_kl`` early stop and gradient clipping; no critic, no value loss.
-
-    Why: with a small exploration noise a state's reward differs between the sampled actions
-    far less than between states (docs/rl.md: the learned critic explained ~0 of it), and one
-    sample per state leaves the self-critical baseline (:class:`SelfCriticalReward`) one
-    difference per forward. ``K`` samples cost ``K`` box IoUs and no extra tracker forward, so
-    each forward yields ``K`` advantages. The objective is each frame's expected reward at the
-    states the tracker visits (``gamma`` is not used; nor are the critic and ``gae_lambda``).
-    """
-
-    def __init__(self, policy: Any, env: Any, *, group_size: int = 8, **kwargs: Any) -> None:
-        if int(group_size) < 2:
-            raise ValueError(f"group_size must be >= 2 (a group needs a mean), got {group_size}")
-        self.group_size = int(group_size)
-        super().__init__(policy, env, **kwargs)
-
-    def _setup_model(self) -> None:
-        super()._setup_model()
-        if not isinstance(self.policy, TrackerPolicy):
-            raise TypeError(f"GroupPPO needs TrackerPolicy, got {type(self.policy).__name__}")
-        self.rollout_buffer = GroupRollout()  # type: ignore[assignment]
-
-    def _group_rewards(self, env: VecEnv, actions: np.ndarray) -> np.ndarray:
-        """``(M, K)`` rewards of ``actions (M, K, 4)`` ([-1, 1] units) at the current states."""
-        env_units = np.clip(actions, -1.0, 1.0) * self.policy.max_action.cpu().numpy()
-        return np.array(
-            [
-                [env.env_method("reward_for_action", a, indices=i)[0] for a in env_units[i]]
-                for i in range(env.num_envs)
-            ]
-        )
-
-    def collect_rollouts(
-        self,
-        env: VecEnv,
-        callback: BaseCallback,
-        rollout_buffer: Any,
-        n_rollout_steps: int,
-    ) -> bool:
-        assert self._last_obs is not None, "No previous observation was provided"
-        self.policy.set_training_mode(False)
-        rollout_buffer.reset()
-        callback.on_rollout_start()
-        std = torch.exp(self.policy.log_std.detach())
-        for _ in range(n_rollout_steps):
-            with torch.no_grad():
-                obs_tensor = obs_as_tensor(self._last_obs, self.device)
-                mean, _ = self.policy.mean_and_value(obs_tensor, value=False)
-                noise = torch.randn((env.num_envs, self.group_size, 4), device=mean.device)
-                samples = mean[:, None] + std * noise
-                log_probs = torch.distributions.Normal(mean[:, None], std).log_prob(samples)
-            samples_np = samples.cpu().numpy()
-            rewards = self._group_rewards(env, samples_np)
-            new_obs, _, dones, infos = env.step(np.clip(mean.cpu().numpy(), -1.0, 1.0))
-            self.num_timesteps += env.num_envs
-            callback.update_locals(locals())
-            if not callback.on_step():
-                return False
-            self._update_info_buffer(infos, dones)
-            rollout_buffer.add(self._last_obs, samples_np, log_probs.sum(-1).cpu().numpy(), rewards)
-            self._last_obs = new_obs
-            self._last_episode_starts = dones
-        rollout_buffer.finish()
-        callback.update_locals(locals())
-        callback.on_rollout_end()
-        return True
-
-    def train(self) -> None:
-        self.policy.set_training_mode(True)
-        self._update_learning_rate(self.policy.optimizer)
-        clip_range = self.clip_range(self._current_progress_remaining)  # type: ignore[operator]
-        buf: GroupRollout = self.rollout_buffer  # type: ignore[assignment]
-        as_tensor = functools.partial(torch.as_tensor, device=self.device)
-        observations = {k: as_tensor(v) for k, v in buf.observations.items()}
-        actions, old_log_probs, advantages = (
-            as_tensor(a, dtype=torch.float32) for a in (buf.actions, buf.log_probs, buf.advantages)
-        )
-        pg_losses, clip_fractions, approx_kls = [], [], []
-        loss = torch.zeros(())
-        continue_training = True
-        for _ in range(self.n_epochs):
-            for idx in torch.randperm(buf.size).split(self.batch_size):
-                mean, _ = self.policy.mean_and_value(
-                    {k: v[idx] for k, v in observations.items()}, value=False
-                )
-                std = torch.exp(self.policy.log_std)
-                dist = torch.distributions.Normal(mean[:, None], std)
-                log_prob = dist.log_prob(actions[idx]).sum(-1)  # (b, K)
-                adv = advantages[idx]
-                if self.normalize_advantage and adv.numel() > 1:
-                    adv = adv / (adv.std() + 1e-8)
-                log_ratio = log_prob - old_log_probs[idx]
-                ratio = torch.exp(log_ratio)
-                policy_loss = -torch.min(
-                    adv * ratio, adv * torch.clamp(ratio, 1 - clip_range, 1 + clip_range)
-                ).mean()
-                loss = policy_loss - self.ent_coef * dist.entropy().sum(-1).mean()
-                with torch.no_grad():
-                    approx_kl = float(torch.mean(torch.exp(log_ratio) - 1 - log_ratio))
-                approx_kls.append(approx_kl)
-                pg_losses.append(policy_loss.item())
-                clip_fractions.append(float(torch.mean((ratio - 1).abs().gt(clip_range).float())))
-                if self.target_kl is not None and approx_kl > 1.5 * self.target_kl:
-                    continue_training = False
-                    break
-                self.policy.optimizer.zero_grad()
-                loss.backward()
-                nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-                self.policy.optimizer.step()
-            self._n_updates += 1
-            if not continue_training:
-                break
-        self.logger.record("train/policy_gradient_loss", float(np.mean(pg_losses)))
-        self.logger.record("train/approx_kl", float(np.mean(approx_kls)))
-        self.logger.record("train/clip_fraction", float(np.mean(clip_fractions)))
-        self.logger.record("train/loss", loss.item())
-        self.logger.record("train/std", torch.exp(self.policy.log_std).mean().item())
-        # how much the K samples of one state differ: the signal the update works with
-        self.logger.record("train/group_reward_std", float(buf.rewards.std(axis=1).mean()))
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/clip_range", clip_range)
-
-
-def _no_grad_forward(module: nn.Module, *args: Any, **kwargs: Any) -> Any:
-    with torch.no_grad():
-        return type(module).forward(module, *args, **kwargs)
 
 
 def _check_choice(name: str, value: Any, valid: tuple[str, ...]) -> None:
