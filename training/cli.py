@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "finetune": ("finetune", "RL fine-tuning of a pretrained tracker with stable-baselines3"),
     "bench": ("bench", "run the speed benchmarks and print their numbers"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),
+    "compare": ("compare", "list the tracklets where two eval output directories differ most"),
 }
 
 # The exception types a command raises for expected errors (their message is the whole story).

@@ -349,10 +349,8 @@ def ranking_uncertainty(
 
     if not rows:
         return []
-    if resamples < 1:
-        raise ValueError(f"resamples must be >= 1, got {resamples}")
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
+    from training.intervals import percentile_interval, pooled_resamples, resample_counts
+
     keys = list(rows[0]["per_tracklet"])
     for row in rows[1:]:
         if set(row["per_tracklet"]) != set(keys):
@@ -364,19 +362,11 @@ def ranking_uncertainty(
         raise ValueError("no tracklets with frames to resample")
     success = np.array([[r["per_tracklet"][k]["success"] for k in keys] for r in rows])  # (C, T)
     frames = np.array([rows[0]["per_tracklet"][k]["frames"] for k in keys])  # (T,)
-    part_of = np.array([k.split("/", 1)[0] for k in keys])
-    rng = np.random.default_rng(seed)
-    counts = np.zeros((resamples, len(keys)))  # (R, T) times each tracklet is drawn
-    for part in dict.fromkeys(part_of):
-        columns = np.flatnonzero(part_of == part)
-        counts[:, columns] = rng.multinomial(
-            len(columns), np.full(len(columns), 1.0 / len(columns)), size=resamples
-        )
-    weights = counts * frames  # (R, T)
-    scores = weights @ success.T / weights.sum(axis=1, keepdims=True)  # (R, C)
+    part_of = [k.split("/", 1)[0] for k in keys]  # each part keeps its size in a draw
+    scores = pooled_resamples(resample_counts(part_of, resamples, seed), frames, success)  # (R, C)
     diffs = scores - scores[:, :1]
     observed = success @ frames / frames.sum()  # (C,) equals each row's pooled Success
-    lo, hi = np.quantile(diffs, [(1.0 - level) / 2, (1.0 + level) / 2], axis=0)
+    lo, hi = percentile_interval(diffs, level)
     first = np.bincount(scores.argmax(axis=1), minlength=len(rows)) / resamples
     return [
         {
