@@ -102,7 +102,11 @@ class SelectionConfig:
         parts: the world splits pooled into one score.
         train_world_seed: the world the candidates were trained on (guards its train/test).
         eval_seed: seed of the point resampling (``training.evaluate.evaluate``).
-        num_envs: sub-envs per evaluation, so a tracker acts on batches.
+        num_envs: sub-envs per evaluation, so a tracker acts on batches (the trackers' eval
+            forwards are batch-invariant on the CPU, so the scores do not depend on it).
+        workers: processes each evaluation shards its tracklets over
+            (``training.evaluate.evaluate``; ``None``: every usable core); only with
+            ``num_envs=1``. The scores do not depend on it (not part of the cache key).
     """
 
     setting: str = "kitti-1"
@@ -111,8 +115,9 @@ class SelectionConfig:
     parts: tuple[ValPart, ...] = field(default=DEFAULT_PARTS)
     train_world_seed: int = 0
     eval_seed: int = 0
-    num_envs: int = 8
+    num_envs: int = 1
     dataset: str = "synthetic"
+    workers: int | None = 1
 
     def __post_init__(self) -> None:
         check_parts(self.parts, self.train_world_seed)
@@ -120,6 +125,11 @@ class SelectionConfig:
             raise ValueError(f"dataset must be 'synthetic' or 'nuscenes', got {self.dataset!r}")
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+        if self.num_envs > 1 and self.workers != 1:
+            raise ValueError(
+                f"workers={self.workers} shards tracklets over processes with one env each; "
+                f"it cannot be combined with num_envs={self.num_envs} (choose one)"
+            )
 
 
 def pooled(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
@@ -277,6 +287,7 @@ def score_candidates(
                     name=candidate,
                     progress=progress,
                     num_envs=config.num_envs,
+                    workers=config.workers,
                 )
                 report = {
                     "selection_key": key,
