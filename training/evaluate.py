@@ -275,9 +275,10 @@ def evaluate(
             ``SyncVectorEnv`` of ``num_envs`` clones of it (shared data) so ``act`` gets batches.
         workers: shard the tracklets over this many forked processes (one torch thread each,
             :mod:`training.parallel`; ``None``: every usable core; more than the usable cores
-            is clamped with a warning). Each tracklet seeds its own episode, so the per-tracklet
-            results are bit-identical to ``workers=1``. Needs a single env (not a vector env,
-            ``num_envs=1``); a worker that dies raises
+            is clamped with a warning). Each tracklet seeds its own episode and every path runs
+            torch on one thread (:func:`~training.parallel.one_torch_thread`), so the
+            per-tracklet results are bit-identical to ``workers=1``. Needs a single env (not
+            a vector env, ``num_envs=1``); a worker that dies raises
             :class:`~training.parallel.WorkerDiedError` naming its tracklets.
         record_boxes: also return every frame's predicted and true box as ``report["boxes"]``
             (:mod:`training.boxes` writes and re-scores them).
@@ -292,7 +293,7 @@ def evaluate(
         if not tracklets:
             raise ValueError("evaluate: tracklets=[] selects no tracklet (None means all)")
     start = time.perf_counter()
-    from training.parallel import resolve_workers
+    from training.parallel import one_torch_thread, resolve_workers
 
     workers = resolve_workers(workers)
     if workers > 1 and (num_envs > 1 or isinstance(env, gym.vector.VectorEnv)):
@@ -310,7 +311,7 @@ def evaluate(
     run = _run_vector if isinstance(env, gym.vector.VectorEnv) else _run_single
     opts = _RunOptions(seed, progress, name, workers, record_boxes)
     try:
-        with _episodes_seeded(env, seed):
+        with _episodes_seeded(env, seed), one_torch_thread():
             episodes, env_info = run(tracker, env, tracklets, opts)
         _warn_env_mismatch(tracker, name, env_info)
     finally:

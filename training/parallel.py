@@ -3,7 +3,7 @@
 :func:`map_forked` runs ``fn(item)`` for every item in ``workers`` forked processes (one torch
 thread each) and returns the results in the items' order. Nothing is pickled but the items and
 the results: the children inherit ``fn`` (a closure over a tracker and an env is fine). Items are
-handed out one at a time from a shared queue (the next free worker takes the next item), so a
+handed out one at a time over each worker's own pipe (the next free worker gets the next item), so a
 long item does not hold up a whole static shard; callers that want the results to be independent
 of the assignment (``training.evaluate``: each tracklet seeds its own episode) get them so.
 
@@ -18,20 +18,36 @@ the worker's traceback. Either way the pool is torn down and nothing partial is 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["WorkerDiedError", "map_forked", "resolve_workers", "usable_cores"]
-
-#: seconds between checks that every worker is still alive while waiting for results
-_POLL_S = 0.2
+__all__ = ["WorkerDiedError", "map_forked", "one_torch_thread", "resolve_workers", "usable_cores"]
 
 
 class WorkerDiedError(ChildProcessError):
     """A worker process ended without returning the items it was running (an ``OSError``, so
     the CLI reports it in one line)."""
+
+
+@contextlib.contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """Torch on one intra-op thread for the block (restored after). Evaluations run so in
+    every process: a closed tracking loop amplifies the last-bit differences that another
+    thread count gives a forward (tracklet 0019/21 of the small test split: P2B Success 63.6
+    with two threads, 58.7 with one), so results depend on neither the machine's cores nor
+    the number of workers."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def usable_cores() -> int:
@@ -78,7 +94,7 @@ def map_forked(
         label: how an item is named in an error (default ``repr``).
 
     Raises:
-        WorkerDiedError: a worker ended without the results of the items it had taken.
+        WorkerDiedError: a worker ended without the result of the item it was given.
         RuntimeError: ``fn`` raised in a worker (the message holds its traceback).
     """
     import multiprocessing as mp
@@ -93,93 +109,123 @@ def map_forked(
     if "fork" not in mp.get_all_start_methods():
         raise RuntimeError("workers > 1 needs the 'fork' start method (Linux); use workers=1")
     ctx = mp.get_context("fork")
-    n = min(int(workers), len(items))
-    tasks = ctx.Queue()
-    for i in range(len(items)):
-        tasks.put(i)
-    for _ in range(n):
-        tasks.put(None)  # one stop mark per worker
-    messages = ctx.Queue()
-    procs = [ctx.Process(target=_work, args=(fn, items, tasks, messages)) for _ in range(n)]
-    for proc in procs:
-        proc.start()
+    pool = _Pool([], [], {}, iter(range(len(items))))
     try:
-        return _collect(items, procs, messages, done, label)
+        for _ in range(min(int(workers), len(items))):
+            # one pipe per worker, written synchronously: nothing sent is lost if it is killed
+            parent_end, child_end = ctx.Pipe()
+            proc = ctx.Process(target=_work, args=(fn, items, child_end), daemon=True)
+            proc.start()
+            child_end.close()
+            pool.conns.append(parent_end)
+            pool.procs.append(proc)
+        for w in range(len(pool.procs)):
+            pool.hand_out(w, items, label)
+        return pool.collect(items, done, label)
     finally:
-        for proc in procs:
+        for proc in pool.procs:
             if proc.is_alive():
                 proc.terminate()
             proc.join()
-        for q in (tasks, messages):
-            q.cancel_join_thread()  # a killed worker may leave items unread
-            q.close()
+        for conn in pool.conns:
+            conn.close()
 
 
-def _work(fn: Callable[[Any], Any], items: Sequence[Any], tasks: Any, messages: Any) -> None:
-    """A worker's loop: take an item index, say it started, run it, send the result."""
+def _work(fn: Callable[[Any], Any], items: Sequence[Any], conn: Any) -> None:
+    """A worker's loop: receive an item index (``None``: stop), run it, send the outcome."""
     import traceback
 
     import torch
 
     torch.set_num_threads(1)  # the workers are the parallelism
-    pid = os.getpid()
-    while (i := tasks.get()) is not None:
-        messages.put(("start", i, pid, None))
+    while (i := conn.recv()) is not None:
         try:
-            messages.put(("done", i, pid, fn(items[i])))
+            conn.send(("done", i, fn(items[i])))
         except BaseException:  # noqa: BLE001 - reported to the parent, which raises
-            messages.put(("error", i, pid, traceback.format_exc()))
+            conn.send(("error", i, traceback.format_exc()))
 
 
-def _collect(
-    items: Sequence[Any],
-    procs: list[Any],
-    messages: Any,
-    done: Callable[[Any, Any], None] | None,
-    label: Callable[[Any], str],
-) -> list[Any]:
-    """The parent's loop: gather results, fail fast on an error or a dead worker."""
-    import queue as queue_module
+@dataclass
+class _Pool:
+    """The parent's view: each worker's pipe and process, the item each one runs."""
 
-    results: dict[int, Any] = {}
-    running: dict[int, set[int]] = {}  # pid -> indices started, not finished
-    while len(results) < len(items):
+    conns: list[Any]
+    procs: list[Any]
+    running: dict[int, int]  # worker -> item index it was given
+    pending: Iterator[int]
+
+    def hand_out(self, w: int, items: Sequence[Any], label: Callable[[Any], str]) -> None:
+        """Give worker ``w`` the next item, or tell it to stop."""
+        i = next(self.pending, None)
         try:
-            kind, i, pid, value = messages.get(timeout=_POLL_S)
-        except queue_module.Empty:
-            _check_alive(items, procs, running, results, label)
-            continue
-        if kind == "start":
-            running.setdefault(pid, set()).add(i)
-            continue
-        running.get(pid, set()).discard(i)
-        if kind == "error":
-            raise RuntimeError(f"{label(items[i])} failed in a worker process:\n{value}")
-        results[i] = value
-        if done is not None:
-            done(items[i], value)
-    return [results[i] for i in range(len(items))]
-
-
-def _check_alive(
-    items: Sequence[Any],
-    procs: list[Any],
-    running: dict[int, set[int]],
-    results: dict[int, Any],
-    label: Callable[[Any], str],
-) -> None:
-    """Raise :class:`WorkerDiedError` when a worker ended abnormally, or when every worker
-    ended with results missing (called when no message came for a while, so the dead
-    worker's last messages have been read)."""
-    for proc in procs:
-        if proc.exitcode not in (None, 0):
-            lost = sorted(running.get(proc.pid, set()))
-            missing = [i for i in range(len(items)) if i not in results]
+            self.conns[w].send(i)
+        except OSError:  # it died between two items
+            if i is None:
+                return
             raise WorkerDiedError(
-                f"worker process {proc.pid} died (exit code {proc.exitcode}) while running "
-                f"{', '.join(label(items[i]) for i in lost) or 'no item'}; "
-                f"{len(missing)} item(s) without a result, nothing written"
-            )
-    if all(proc.exitcode is not None for proc in procs):
-        missing = [label(items[i]) for i in range(len(items)) if i not in results]
-        raise WorkerDiedError(f"worker processes ended without results for {missing}")
+                f"worker process {self.procs[w].pid} died before taking {label(items[i])}; "
+                "nothing written"
+            ) from None
+        if i is not None:
+            self.running[w] = i
+
+    def _receive(self, w: int) -> tuple[str, int, Any] | None:
+        """Worker ``w``'s next message, or ``None`` (none waiting, or its pipe closed: then
+        the process is ending, and it is waited for)."""
+        conn = self.conns[w]
+        try:
+            return conn.recv() if conn.poll() else None
+        except EOFError:
+            self.procs[w].join()
+            return None
+
+    def collect(
+        self,
+        items: Sequence[Any],
+        done: Callable[[Any, Any], None] | None,
+        label: Callable[[Any], str],
+    ) -> list[Any]:
+        """Gather every result; fail fast on an error or a worker that died."""
+        from multiprocessing.connection import wait
+
+        results: dict[int, Any] = {}
+        alive = set(range(len(self.procs)))
+        while len(results) < len(items):
+            if not alive:
+                missing = [label(items[i]) for i in range(len(items)) if i not in results]
+                raise WorkerDiedError(f"worker processes ended without results for {missing}")
+            owner = {id(self.conns[w]): w for w in alive}
+            owner |= {id(self.procs[w].sentinel): w for w in alive}
+            ready = wait([self.conns[w] for w in alive] + [self.procs[w].sentinel for w in alive])
+            for obj in ready:
+                w = owner[id(obj)]
+                message = self._receive(w)  # a message first, even from a worker that ended
+                if message is not None:
+                    kind, i, value = message
+                    del self.running[w]
+                    if kind == "error":
+                        raise RuntimeError(
+                            f"{label(items[i])} failed in a worker process:\n{value}"
+                        )
+                    results[i] = value
+                    if done is not None:
+                        done(items[i], value)
+                    self.hand_out(w, items, label)
+                elif w in alive and not self.procs[w].is_alive():
+                    self._ended(w, items, results, label)
+                    alive.discard(w)
+        return [results[i] for i in range(len(items))]
+
+    def _ended(self, w: int, items: Sequence[Any], results: dict[int, Any], label) -> None:
+        """Worker ``w`` ended: fine after its stop mark, :class:`WorkerDiedError` while it
+        still had an item."""
+        if w not in self.running:
+            return
+        proc = self.procs[w]
+        proc.join()
+        missing = sum(1 for i in range(len(items)) if i not in results)
+        raise WorkerDiedError(
+            f"worker process {proc.pid} died (exit code {proc.exitcode}) while running "
+            f"{label(items[self.running[w]])}; {missing} item(s) without a result, "
+            "nothing written"
+        )
