@@ -10,6 +10,12 @@ weather option) can reuse or extend it with extra env keywords. Each tracker is 
 the env options it records (``tracker.env_options``, e.g. recipe v2's merged template): one env
 per distinct option set; an explicit ``--template-mode`` wins, and ``evaluate`` warns for a
 tracker it contradicts (docs/recipe.md).
+
+The tracklets are sharded over ``--workers`` processes (every usable core by default; the
+results do not depend on it), ``--eval-seeds`` gives one report averaged over seeds, every
+number gets a 90 % bootstrap interval over tracklets, an oracle ``--reference`` is marked, and
+``--save-boxes`` writes every frame's boxes (docs/evaluation.md). Every flag is checked before
+any tracker is loaded or directory made.
 """
 
 from __future__ import annotations
@@ -230,6 +236,7 @@ class EvalPlan:
     oracle: str | None
 
     def describe(self) -> dict[str, Any]:
+        """The plan as the report's JSON ``eval`` block."""
         return {
             "seeds": list(self.seeds),
             "workers": self.workers,
@@ -249,7 +256,6 @@ def run(args: argparse.Namespace) -> int:
     check_out(args)
     if getattr(args, "weather", None):
         return _run_weather(args, plan, loaded)
-    # an oracle --reference: evaluate warns, marks the report and its table row
     if plan.device != "cpu":
         print(
             f"note: on {plan.device} the trackers run on the batched path "
