@@ -374,7 +374,7 @@ def test_cli_weather_runs_each_tracker_on_its_options(tmp_path, monkeypatch):
     monkeypatch.setattr(
         eval_cmd,
         "load_trackers",
-        lambda args: {"previous_box": PreviousBox(), v2: trackers.load(v2)},
+        lambda args, plan: {"previous_box": PreviousBox(), v2: trackers.load(v2)},
     )
     from training.cli import main
 

@@ -31,6 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("render", "watch trackers on one tracklet: a video or a rerun 3D recording"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),
     "info": ("info", "print a checkpoint's provenance: what it was trained and chosen on"),
+    "compare": ("compare", "list the tracklets where two eval output directories differ most"),
 }
 
 # The exception types a command raises for expected errors (their message is the whole story).

@@ -19,24 +19,34 @@ Success / precision are percent; a group without frames scores NaN (``null`` in 
 from __future__ import annotations
 
 import contextlib
-import json
-import math
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from envs.metrics import THRESHOLDS_IOU, THRESHOLDS_M, OPEAccumulator
-from envs.plotting import pyplot, save_figure
-from training.rundir import atomic_write_text
+from envs.metrics import OPEAccumulator
+
+# the output half lives in training.reporting; its names stay importable from here
+from training.reporting import (
+    category_order,
+    display_name,
+    format_table,
+    json_safe,
+    plot_curves,
+    save_report,
+    slug,
+)
 
 __all__ = [
+    "category_order",
     "env_option_groups",
     "env_options_for",
     "evaluate",
+    "display_name",
     "format_table",
     "json_safe",
     "observation_keys_for",
@@ -145,6 +155,17 @@ def _warn_env_mismatch(tracker: Any, name: str, env_info: Mapping[str, Any]) -> 
             )
 
 
+def _warn_oracle(name: str, reference: str) -> None:
+    import warnings
+
+    warnings.warn(
+        f"evaluate: tracker {name!r} runs with reference={reference!r}: the search area is cut "
+        "around the ground truth, an oracle setting (its table row is marked)",
+        UserWarning,
+        stacklevel=3,
+    )
+
+
 def tracker_name(tracker: Any, name: str | None = None) -> str:
     """``name`` if given, else ``tracker.name``, else the tracker's class name."""
     if name:
@@ -184,6 +205,8 @@ def evaluate(
     progress: bool | Callable = False,
     out_dir: str | Path | None = None,
     num_envs: int = 1,
+    workers: int | None = 1,
+    record_boxes: bool = False,
 ) -> dict[str, Any]:
     """Run ``tracker`` over every tracklet of ``env`` once and report OPE Success / Precision.
 
@@ -205,10 +228,19 @@ def evaluate(
         out_dir: if given, write ``<name>.json`` and curve plots there.
         num_envs: with an unwrapped ``TrackingEnv`` and ``num_envs > 1``, run a
             ``SyncVectorEnv`` of ``num_envs`` clones of it (shared data) so ``act`` gets batches.
+        workers: shard the tracklets over this many forked processes (one torch thread each,
+            :mod:`training.parallel`; ``None``: every usable core; more than the usable cores
+            is clamped with a warning). Each tracklet seeds its own episode and every path runs
+            torch on one thread (:func:`~training.parallel.one_torch_thread`), so the
+            per-tracklet results are bit-identical to ``workers=1``. Needs a single env (not
+            a vector env, ``num_envs=1``); a worker that dies raises
+            :class:`~training.parallel.WorkerDiedError` naming its tracklets.
+        record_boxes: also return every frame's predicted and true box as ``report["boxes"]``
+            (:mod:`training.boxes` writes and re-scores them).
 
     Returns:
         The report described in the module docstring. ``act`` is called once per step;
-        ``tracker_fps`` counts only the time spent inside ``act``.
+        ``tracker_fps`` counts only the time spent inside ``act`` (summed over the workers).
     """
     name = tracker_name(tracker, name)
     if tracklets is not None:
@@ -216,6 +248,14 @@ def evaluate(
         if not tracklets:
             raise ValueError("evaluate: tracklets=[] selects no tracklet (None means all)")
     start = time.perf_counter()
+    from training.parallel import one_torch_thread, resolve_workers
+
+    workers = resolve_workers(workers)
+    if workers > 1 and (num_envs > 1 or isinstance(env, gym.vector.VectorEnv)):
+        raise ValueError(
+            "evaluate: workers > 1 shards the tracklets over processes with one env each; "
+            "it cannot be combined with a vector env or num_envs > 1 (choose one)"
+        )
     owned = None
     if num_envs > 1 and not isinstance(env, gym.vector.VectorEnv):
         if env is not env.unwrapped or not hasattr(env, "clone"):
@@ -224,13 +264,19 @@ def evaluate(
             )
         owned = env = gym.vector.SyncVectorEnv([env.clone for _ in range(num_envs)])
     run = _run_vector if isinstance(env, gym.vector.VectorEnv) else _run_single
+    opts = _RunOptions(seed, progress, name, workers, record_boxes)
     try:
-        with _episodes_seeded(env, seed):
-            acc, frames, act_s, env_info = run(tracker, env, seed, tracklets, progress, name)
+        with _episodes_seeded(env, seed), one_torch_thread():
+            episodes, env_info = run(tracker, env, tracklets, opts)
         _warn_env_mismatch(tracker, name, env_info)
     finally:
         if owned is not None:
             owned.close()
+    acc = OPEAccumulator()
+    for e in episodes:
+        acc.add(e.tracklet_id, e.category, e.observed, e.ious, e.errors)
+    frames = sum(len(e.ious) for e in episodes)
+    act_s = sum(e.act_s for e in episodes)
     report: dict[str, Any] = {"tracker": name}
     report.update(acc.report(curves=True))
     report["tracker_fps"] = frames / act_s if act_s > 0 else float("inf")
@@ -238,6 +284,9 @@ def evaluate(
     report["tracklets"] = len(acc)
     report["wall_s"] = time.perf_counter() - start
     report["env"] = env_info
+    if env_info.get("reference") not in (None, "prediction"):
+        report["oracle"] = env_info["reference"]  # format_table marks the row
+        _warn_oracle(name, env_info["reference"])
     report["per_tracklet"] = [
         {
             "tracklet": r.tracklet_id,
@@ -249,10 +298,15 @@ def evaluate(
         }
         for r in sorted(acc.results, key=lambda r: str(r.tracklet_id))  # layout-independent
     ]
+    if record_boxes:
+        report["boxes"] = [
+            {"tracklet": e.tracklet_id, "category": e.category, "frames": e.boxes}
+            for e in sorted(episodes, key=lambda e: str(e.tracklet_id))
+        ]
     if out_dir is not None:
         out = Path(out_dir)
-        save_report(report, out / f"{_slug(name)}.json")
-        plot_curves({name: report}, out, prefix=f"{_slug(name)}_")
+        save_report(report, out / f"{slug(name)}.json")
+        plot_curves({name: report}, out, prefix=f"{slug(name)}_")
     return report
 
 
@@ -306,37 +360,127 @@ def _check_indices(count: int, tracklets: Sequence[int] | None) -> list[int]:
     return indices
 
 
-def _run_single(tracker, env, seed, tracklets, progress, name):
+@dataclass(frozen=True)
+class _RunOptions:
+    """What every runner needs besides the tracker, the env and the tracklets."""
+
+    seed: int
+    progress: bool | Callable
+    name: str
+    workers: int
+    record_boxes: bool
+
+
+@dataclass
+class _Episode:
+    """One evaluated tracklet: the step results of frames 1.. (``ious``, ``errors`` in metres),
+    the seconds spent in ``act`` and, when recorded, every frame's boxes (frame 0 included)."""
+
+    tracklet_id: str
+    category: str
+    observed: bool
+    ious: list[float] = field(default_factory=list)
+    errors: list[float] = field(default_factory=list)
+    act_s: float = 0.0
+    boxes: list[dict[str, Any]] | None = None
+
+    def start(self, init_box: Any, start_frame: int) -> None:
+        """Begin the box record with the given first frame (the ground truth, IoU 1)."""
+        box = [float(v) for v in init_box]
+        self.boxes = [_frame_record(int(start_frame), box, box, 1.0, 0.0, None)]
+
+    def step(self, info: Mapping[str, Any], record: bool) -> None:
+        """Add one step's result (``info`` of a ``TrackingEnv`` step, or one sub-env's)."""
+        self.ious.append(float(info["iou"]))
+        self.errors.append(float(info["center_error"]))
+        if record and self.boxes is not None:
+            self.boxes.append(
+                _frame_record(
+                    int(info["frame"]),
+                    [float(v) for v in info["pred_box"]],
+                    [float(v) for v in info["gt_box"]],
+                    self.ious[-1],
+                    self.errors[-1],
+                    int(info["target_points"]),
+                )
+            )
+
+
+def _frame_record(frame, pred, gt, iou, error, points) -> dict[str, Any]:
+    """One line of the ``--save-boxes`` file (schema: :mod:`training.boxes`)."""
+    return {
+        "frame": frame,
+        "pred": pred,
+        "gt": gt,
+        "iou": iou,
+        "center_error": error,
+        "target_points": points,
+    }
+
+
+def _run_episode(tracker: Any, env: Any, index: int, reset_seed: int | None, record: bool):
+    """Track tracklet ``index`` of ``env`` to its end; returns its :class:`_Episode`."""
+    obs, info = env.reset(seed=reset_seed, options={"tracklet": index})
+    episode = _Episode(info["tracklet"], info["category"], bool(info["observed"]))
+    if record:
+        episode.start(info["init_box"], info.get("start_frame", 0))
+    while True:
+        t0 = time.perf_counter()
+        action = tracker.act(obs)
+        episode.act_s += time.perf_counter() - t0
+        obs, _, terminated, truncated, info = env.step(action)
+        episode.step(info, record)
+        if terminated or truncated:
+            return episode
+
+
+def _run_single(tracker, env, tracklets, opts: _RunOptions):
     u = env.unwrapped
     indices = _check_indices(u.num_tracklets, tracklets)
     lengths = u.tracklet_lengths
-    bar = _progress(sum(lengths[i] for i in indices), progress, name)
-    acc = OPEAccumulator()
-    frames, act_s = 0, 0.0
-    for k, index in enumerate(indices):
-        obs, info = env.reset(seed=seed if k == 0 else None, options={"tracklet": index})
-        tracklet_id, category, observed = info["tracklet"], info["category"], info["observed"]
-        ious: list[float] = []
-        errors: list[float] = []
-        while True:
-            t0 = time.perf_counter()
-            action = tracker.act(obs)
-            act_s += time.perf_counter() - t0
-            obs, _, terminated, truncated, info = env.step(action)
-            ious.append(info["iou"])
-            errors.append(info["center_error"])
-            if terminated or truncated:
-                break
-        frames += len(ious)
-        acc.add(tracklet_id, category, observed, ious, errors)
+    bar = _progress(sum(lengths[i] for i in indices), opts.progress, opts.name)
+
+    def tick(_index: int, episode: _Episode) -> None:
         if bar is not None:
-            bar.update(len(ious) + 1)
-    if bar is not None:
-        bar.close()
-    return acc, frames, act_s, _env_info(u)
+            bar.update(len(episode.ious) + 1)
+
+    try:
+        if opts.workers > 1:
+            episodes = _run_sharded(tracker, env, indices, opts, tick)
+        else:
+            episodes = []
+            for k, index in enumerate(indices):
+                reset_seed = opts.seed if k == 0 else None
+                episodes.append(_run_episode(tracker, env, index, reset_seed, opts.record_boxes))
+                tick(index, episodes[-1])
+    finally:
+        if bar is not None:
+            bar.close()
+    info = _env_info(u)
+    if opts.workers > 1:
+        info["workers"] = opts.workers
+    return episodes, info
 
 
-def _run_vector(tracker, vec, seed, tracklets, progress, name):
+def _run_sharded(tracker, env, indices: list[int], opts: _RunOptions, tick) -> list[_Episode]:
+    """The tracklets over ``opts.workers`` forked processes, longest first (balance); each
+    worker resets its first episode with the seed, as :func:`_run_single` does (the episodes
+    are seeded per tracklet, so this only keeps ``env.np_random`` the same)."""
+    from training.parallel import map_forked
+
+    lengths = env.unwrapped.tracklet_lengths
+    ids = [t.tracklet_id for t in env.unwrapped.tracklets]
+    order = sorted(indices, key=lambda i: (-lengths[i], i))
+
+    def one(index: int) -> _Episode:
+        return _run_episode(tracker, env, index, opts.seed, opts.record_boxes)
+
+    episodes = map_forked(one, order, opts.workers, tick, label=lambda i: f"tracklet {ids[i]}")
+    by_index = dict(zip(order, episodes, strict=True))
+    return [by_index[i] for i in indices]
+
+
+def _run_vector(tracker, vec, tracklets, opts: _RunOptions):
     mode = vec.metadata.get("autoreset_mode", gym.vector.AutoresetMode.NEXT_STEP)
     if str(getattr(mode, "value", mode)) != gym.vector.AutoresetMode.NEXT_STEP.value:
         raise ValueError(f"evaluate needs a vector env with NEXT_STEP autoreset; got {mode}")
@@ -348,38 +492,33 @@ def _run_vector(tracker, vec, seed, tracklets, progress, name):
     remaining = np.array([len(o) for o in orders])
     # a sub-env with nothing to do still needs a valid order; its episodes are ignored
     vec.set_attr("tracklet_order", [o if o else [indices[0]] for o in orders])
-    bar = _progress(sum(lengths[i] for i in indices), progress, name)
-    acc = OPEAccumulator()
-    frames, act_s = 0, 0.0
+    bar = _progress(sum(lengths[i] for i in indices), opts.progress, opts.name)
+    episodes: list[_Episode] = []
     active = remaining > 0
     resetting = np.zeros(num, dtype=bool)  # the sub-env autoresets during this step
-    ious: list[list[float]] = [[] for _ in range(num)]
-    errors: list[list[float]] = [[] for _ in range(num)]
-    obs, infos = vec.reset(seed=seed)
-    meta = [
-        (infos["tracklet"][i], infos["category"][i], bool(infos["observed"][i])) for i in range(num)
-    ]
+    obs, infos = vec.reset(seed=opts.seed)
+    current = [_vector_episode(infos, i, opts.record_boxes) for i in range(num)]
     while active.any():
         t0 = time.perf_counter()
         actions = np.asarray(tracker.act(obs), dtype=np.float32).reshape(num, -1)
-        act_s += time.perf_counter() - t0
-        frames += int((active & ~resetting).sum())
+        act_s = time.perf_counter() - t0
+        stepping = active & ~resetting
         obs, _, term, trunc, infos = vec.step(actions)
         for i in range(num):
             if resetting[i]:  # this step was the sub-env's reset: a new tracklet starts
                 resetting[i] = False
-                meta[i] = (infos["tracklet"][i], infos["category"][i], bool(infos["observed"][i]))
+                current[i] = _vector_episode(infos, i, opts.record_boxes)
                 continue
             if not active[i]:
                 resetting[i] = bool(term[i] or trunc[i])
                 continue
-            ious[i].append(float(infos["iou"][i]))
-            errors[i].append(float(infos["center_error"][i]))
+            # the batch's act time, shared by the sub-envs that stepped in it
+            current[i].act_s += act_s / max(int(stepping.sum()), 1)
+            current[i].step({k: infos[k][i] for k in _STEP_KEYS}, opts.record_boxes)
             if term[i] or trunc[i]:
-                acc.add(meta[i][0], meta[i][1], meta[i][2], ious[i], errors[i])
+                episodes.append(current[i])
                 if bar is not None:
-                    bar.update(len(ious[i]) + 1)
-                ious[i], errors[i] = [], []
+                    bar.update(len(current[i].ious) + 1)
                 remaining[i] -= 1
                 active[i] = remaining[i] > 0
                 resetting[i] = True
@@ -394,123 +533,16 @@ def _run_vector(tracker, vec, seed, tracklets, progress, name):
         "reference": vec.get_attr("reference")[0],
         "num_envs": num,
     }
-    return acc, frames, act_s, info
+    return episodes, info
 
 
-# --------------------------------------------------------------------------- output
+# the step info a vector env's sub-env result is read from
+_STEP_KEYS = ("iou", "center_error", "frame", "pred_box", "gt_box", "target_points")
 
 
-def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-
-
-def _fmt(x: float) -> str:
-    return "  -  " if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:5.1f}"
-
-
-def category_order(categories: Iterable[str]) -> list[str]:
-    """Categories in one fixed order whatever the reports hold: KITTI's label order
-    (``envs.data.kitti.CATEGORIES``), then any other name alphabetically."""
-    from envs.data.kitti import CATEGORIES
-
-    names = set(categories)
-    rank = {c: i for i, c in enumerate(CATEGORIES)}
-    return sorted(names, key=lambda c: (rank.get(c, len(rank)), c))
-
-
-def format_table(reports: Mapping[str, Mapping[str, Any]] | Sequence[Mapping[str, Any]]) -> str:
-    """A plain-text table: one row per report, ``Success / Precision`` per category in a fixed
-    order (:func:`category_order`; unseen ones marked ``*``), then the observed, unseen and
-    frame-weighted mean groups, frames and the tracker's frames/s."""
-    if not isinstance(reports, Mapping):
-        reports = {r.get("tracker", f"#{i}"): r for i, r in enumerate(reports)}
-    unseen: set[str] = set()
-    found: set[str] = set()
-    for r in reports.values():
-        for c, e in r["categories"].items():
-            found.add(c)
-            if not e["observed"]:
-                unseen.add(c)
-    cats = category_order(found)
-    cols = [c + ("*" if c in unseen else "") for c in cats] + ["observed", "unseen", "mean"]
-    width = max(13, *(len(c) for c in cols))
-    namew = max(12, *(len(n) for n in reports))
-    head = f"{'tracker':<{namew}} | " + " | ".join(f"{c:^{width}}" for c in cols)
-    head += " | frames |   fps"
-    sub = (
-        f"{'':<{namew}} | " + " | ".join(f"{'Succ / Prec':^{width}}" for _ in cols) + " |        |"
-    )
-    lines = [head, sub, "-" * len(head)]
-    for n, r in reports.items():
-        entries = [r["categories"].get(c) for c in cats] + [r["observed"], r["unseen"], r["mean"]]
-        cells = []
-        for e in entries:
-            txt = "-" if e is None else f"{_fmt(e['success'])} / {_fmt(e['precision'])}"
-            cells.append(f"{txt:^{width}}")
-        fps = r.get("tracker_fps", float("nan"))
-        fps_txt = "  inf" if fps == float("inf") else f"{fps:5.0f}"
-        lines.append(
-            f"{n:<{namew}} | " + " | ".join(cells) + f" | {r['mean']['frames']:6d} | {fps_txt}"
-        )
-    if unseen:
-        lines.append("* unseen category (not in the setting's observed categories)")
-    return "\n".join(lines)
-
-
-def json_safe(x: Any) -> Any:
-    """``x`` with numpy values as Python ones and NaN / inf as ``None`` (JSON-able)."""
-    if isinstance(x, dict):
-        return {str(k): json_safe(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [json_safe(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return json_safe(x.tolist())
-    if isinstance(x, np.generic):
-        x = x.item()
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
-def save_report(report: Mapping[str, Any], path: str | Path) -> Path:
-    """Write a report (or ``{name: report}``) as JSON (NaN / inf -> ``null``); returns the path.
-
-    Written to a temporary file and renamed, so a killed run never leaves a truncated report (the
-    selection in :mod:`training.selection` reuses reports as a cache)."""
-    return atomic_write_text(path, json.dumps(json_safe(dict(report)), indent=2) + "\n")
-
-
-def plot_curves(
-    reports: Mapping[str, Mapping[str, Any]], out_dir: str | Path, prefix: str = ""
-) -> list[Path]:
-    """Draw ``<prefix>success.png`` and ``<prefix>precision.png`` in ``out_dir``: one panel per
-    group (mean, observed, unseen) with one curve per tracker; returns the paths."""
-    plt = pyplot()
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    groups = [
-        g for g in ("mean", "observed", "unseen") if any(r[g]["frames"] for r in reports.values())
-    ]
-    for key, xs, xlabel, ylabel in (
-        ("success", THRESHOLDS_IOU, "overlap threshold (3D IoU)", "success rate"),
-        ("precision", THRESHOLDS_M, "centre error threshold (m)", "precision"),
-    ):
-        fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.6), squeeze=False)
-        for ax, g in zip(axes[0], groups, strict=True):
-            for n, r in reports.items():
-                e = r[g]
-                if not e["frames"] or f"{key}_curve" not in e:
-                    continue
-                ax.plot(xs, e[f"{key}_curve"], label=f"{n} [{e[key]:.1f}]")
-            ax.set_title(f"{key.capitalize()} — {g}")
-            ax.set_xlabel(xlabel)
-            ax.set_ylabel(ylabel)
-            ax.set_ylim(0, 1.02)
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = out / f"{prefix}{key}.png"
-        paths.append(save_figure(fig, path, 110))
-    return paths
+def _vector_episode(infos: Mapping[str, Any], i: int, record: bool) -> _Episode:
+    """The episode sub-env ``i`` starts (its reset info in a vector env's ``infos``)."""
+    episode = _Episode(infos["tracklet"][i], infos["category"][i], bool(infos["observed"][i]))
+    if record:
+        episode.start(infos["init_box"][i], infos["start_frame"][i])
+    return episode

@@ -51,10 +51,13 @@ import numpy as np
 from envs.metrics import robustness_metrics
 from envs.plotting import pyplot, save_figure
 from envs.weather.levels import KINDS, LEVELS, check_kind, check_level, describe
+from training.parallel import map_forked
 
 __all__ = [
     "DISTANCE_EDGES_M",
     "add_weather_arguments",
+    "check_weather_arguments",
+    "parse_weather_levels",
     "run_weather_eval",
     "save_weather",
     "HAUSDORFF_EDGES_M",
@@ -267,6 +270,8 @@ def run_weather_benchmark(
 
     kinds_t = weather_kinds(kinds)
     levels_t = tuple(check_level(v) for v in levels)
+    _refuse_repeats("weather kinds", kinds_t)
+    _refuse_repeats("weather levels", levels_t)
     check_fog_mode(fog_mode)
     _check_count("num_envs", num_envs)
     _check_count("workers", workers)
@@ -335,75 +340,6 @@ def run_weather_benchmark(
 def _check_count(name: str, value: Any) -> None:
     if value is not None and (isinstance(value, bool) or int(value) != value or value < 1):
         raise ValueError(f"{name} must be None or an integer >= 1; got {value!r}")
-
-
-def map_forked(
-    fn: Callable[[Any], Any],
-    items: Sequence[Any],
-    workers: int | None,
-    done: Callable[[Any, Any], None] | None = None,
-) -> list[Any]:
-    """``[fn(item) for item in items]``, in ``workers`` forked processes when ``workers > 1``.
-
-    The children inherit ``fn`` (a closure is fine: nothing is pickled but the items and the
-    results) and run one torch thread each; item ``i`` goes to worker ``i % workers``.
-    ``done(item, result)`` is called in the parent as each result arrives. A failing item
-    raises ``RuntimeError`` naming it, with the child's traceback; a child that dies without a
-    result (killed) raises too, instead of waiting forever.
-    """
-    import multiprocessing as mp
-    import queue as queue_module
-    import traceback
-
-    if workers is None or workers <= 1 or len(items) <= 1:
-        results = []
-        for item in items:
-            results.append(fn(item))
-            if done is not None:
-                done(item, results[-1])
-        return results
-    if "fork" not in mp.get_all_start_methods():
-        raise RuntimeError("workers > 1 needs the 'fork' start method (Linux); use workers=None")
-    ctx = mp.get_context("fork")
-    results_q = ctx.Queue()
-
-    def work(indices: list[int]) -> None:
-        import torch
-
-        torch.set_num_threads(1)
-        for i in indices:
-            try:
-                results_q.put((i, fn(items[i]), None))
-            except BaseException:  # noqa: BLE001 - reported to the parent, which raises
-                results_q.put((i, None, traceback.format_exc()))
-
-    n = min(int(workers), len(items))
-    procs = [ctx.Process(target=work, args=(list(range(w, len(items), n)),)) for w in range(n)]
-    for proc in procs:
-        proc.start()
-    results: dict[int, Any] = {}
-    try:
-        while len(results) < len(items):
-            try:
-                i, value, error = results_q.get(timeout=5.0)
-            except queue_module.Empty:
-                if not any(proc.is_alive() for proc in procs) and results_q.empty():
-                    missing = [items[i] for i in range(len(items)) if i not in results]
-                    raise RuntimeError(
-                        f"worker processes ended without results for {missing}"
-                    ) from None
-                continue
-            if error is not None:
-                raise RuntimeError(f"{items[i]!r} failed in a worker process:\n{error}")
-            results[i] = value
-            if done is not None:
-                done(items[i], value)
-    finally:
-        for proc in procs:
-            if proc.is_alive() and len(results) < len(items):
-                proc.terminate()
-            proc.join()
-    return [results[i] for i in range(len(items))]
 
 
 def _real_records(
@@ -620,13 +556,41 @@ def add_weather_arguments(parser) -> None:
         "returns relocate points, none removed; default) or lossy (shifted "
         "tables, weak returns removed); docs/weather.md",
     )
-    parser.add_argument(
-        "--workers",
-        type=int,
-        default=1,
-        help="run the weather conditions in N forked processes, one torch thread each (the "
-        "result does not depend on N; Linux); default 1",
-    )
+
+
+def parse_weather_levels(text: str | Sequence[int]) -> tuple[int, ...]:
+    """``"1,3,5"`` (or a sequence) -> ``(1, 3, 5)``; ``ValueError`` naming ``--weather-levels``
+    for an empty list, a bad or repeated level (R and S.d over a repeated level mean nothing)."""
+    values = [v.strip() for v in text.split(",")] if isinstance(text, str) else list(text)
+    if not [v for v in values if v != ""]:
+        raise ValueError(f"--weather-levels {text!r} names no level; valid levels 1..5")
+    try:
+        levels = tuple(check_level(int(v)) for v in values)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"--weather-levels {text!r}: {exc}") from None
+    _refuse_repeats("--weather-levels", levels)
+    return levels
+
+
+def _refuse_repeats(flag: str, values: Sequence[Any]) -> None:
+    repeated = [v for i, v in enumerate(values) if v in values[:i]]
+    if repeated:
+        raise ValueError(f"{flag} lists {repeated[0]!r} twice: {list(values)}")
+
+
+def check_weather_arguments(args) -> None:
+    """Every ``--weather*`` flag checked before any work (``ValueError`` naming the flag):
+    kinds known and not repeated, levels as :func:`parse_weather_levels`, a seed ``>= 0``."""
+    try:
+        kinds = weather_kinds(args.weather)
+    except ValueError as exc:
+        raise ValueError(f"--weather {args.weather!r}: {exc}") from None
+    if not kinds:
+        raise ValueError(f"--weather {args.weather!r} names no kind; valid: all, {KINDS}")
+    _refuse_repeats("--weather", kinds)
+    parse_weather_levels(args.weather_levels)
+    if args.weather_seed < 0:
+        raise ValueError(f"--weather-seed must be >= 0, got {args.weather_seed}")
 
 
 def run_weather_eval(
@@ -649,8 +613,7 @@ def run_weather_eval(
 ) -> dict[str, Any]:
     """What ``pointtrack eval --weather ...`` runs: :func:`run_weather_benchmark`, then print the
     Tables III–IV layout and (with ``out_dir``) write JSON, table and plots."""
-    if isinstance(levels, str):
-        levels = [int(v) for v in levels.split(",") if v.strip()]
+    levels = parse_weather_levels(levels)
     result = run_weather_benchmark(
         tracker,
         make_env,

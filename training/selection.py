@@ -111,7 +111,11 @@ class SelectionConfig:
         parts: the world splits pooled into one score.
         train_world_seed: the world the candidates were trained on (guards its train/test).
         eval_seed: seed of the point resampling (``training.evaluate.evaluate``).
-        num_envs: sub-envs per evaluation, so a tracker acts on batches.
+        num_envs: sub-envs per evaluation, so a tracker acts on batches (the trackers' eval
+            forwards are batch-invariant on the CPU, so the scores do not depend on it).
+        workers: processes each evaluation shards its tracklets over
+            (``training.evaluate.evaluate``; ``None``: every usable core); only with
+            ``num_envs=1``. The scores do not depend on it (not part of the cache key).
     """
 
     setting: str = "kitti-1"
@@ -120,8 +124,9 @@ class SelectionConfig:
     parts: tuple[ValPart, ...] = field(default=DEFAULT_PARTS)
     train_world_seed: int = 0
     eval_seed: int = 0
-    num_envs: int = 8
+    num_envs: int = 1
     dataset: str = "synthetic"
+    workers: int | None = 1
 
     def __post_init__(self) -> None:
         check_parts(self.parts, self.train_world_seed)
@@ -129,6 +134,11 @@ class SelectionConfig:
             raise ValueError(f"dataset must be 'synthetic' or 'nuscenes', got {self.dataset!r}")
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+        if self.num_envs > 1 and self.workers != 1:
+            raise ValueError(
+                f"workers={self.workers} shards tracklets over processes with one env each; "
+                f"it cannot be combined with num_envs={self.num_envs} (choose one)"
+            )
 
 
 def pooled(entries: Sequence[Mapping[str, Any]]) -> dict[str, float]:
@@ -304,6 +314,7 @@ def score_candidates(
                     name=candidate,
                     progress=progress,
                     num_envs=config.num_envs,
+                    workers=config.workers,
                 )
                 report = {
                     "selection_key": key,
@@ -375,10 +386,8 @@ def ranking_uncertainty(
 
     if not rows:
         return []
-    if resamples < 1:
-        raise ValueError(f"resamples must be >= 1, got {resamples}")
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
+    from training.intervals import percentile_interval, pooled_resamples, resample_counts
+
     keys = list(rows[0]["per_tracklet"])
     for row in rows[1:]:
         if set(row["per_tracklet"]) != set(keys):
@@ -390,19 +399,11 @@ def ranking_uncertainty(
         raise ValueError("no tracklets with frames to resample")
     success = np.array([[r["per_tracklet"][k]["success"] for k in keys] for r in rows])  # (C, T)
     frames = np.array([rows[0]["per_tracklet"][k]["frames"] for k in keys])  # (T,)
-    part_of = np.array([k.split("/", 1)[0] for k in keys])
-    rng = np.random.default_rng(seed)
-    counts = np.zeros((resamples, len(keys)))  # (R, T) times each tracklet is drawn
-    for part in dict.fromkeys(part_of):
-        columns = np.flatnonzero(part_of == part)
-        counts[:, columns] = rng.multinomial(
-            len(columns), np.full(len(columns), 1.0 / len(columns)), size=resamples
-        )
-    weights = counts * frames  # (R, T)
-    scores = weights @ success.T / weights.sum(axis=1, keepdims=True)  # (R, C)
+    part_of = [k.split("/", 1)[0] for k in keys]  # each part keeps its size in a draw
+    scores = pooled_resamples(resample_counts(part_of, resamples, seed), frames, success)  # (R, C)
     diffs = scores - scores[:, :1]
     observed = success @ frames / frames.sum()  # (C,) equals each row's pooled Success
-    lo, hi = np.quantile(diffs, [(1.0 - level) / 2, (1.0 + level) / 2], axis=0)
+    lo, hi = percentile_interval(diffs, level)
     first = np.bincount(scores.argmax(axis=1), minlength=len(rows)) / resamples
     return [
         {

@@ -3,7 +3,7 @@ observed and unseen categories of a class-agnostic setting (default ``kitti-1``)
 
 Trackers: the two baselines plus every shipped checkpoint that ``trackers.load`` can load
 (``p2b-kitti1-u``, ``p2b-kitti1-w``, ``bat-…``, ``gpt-…``); missing ones are skipped with a note.
-Learned trackers run over a ``SyncVectorEnv`` so they act on batches.
+Learned trackers' tracklets are sharded over ``--workers`` processes (every usable core).
 """
 
 from __future__ import annotations
@@ -54,8 +54,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--num-envs",
         type=int,
-        default=8,
-        help="batch size for learned trackers (sub-envs of a SyncVectorEnv)",
+        default=1,
+        help="batch size for learned trackers (sub-envs of a SyncVectorEnv; then --workers is 1)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="processes the learned trackers' tracklets are sharded over, one torch thread each "
+        "(default: every usable core; the results do not depend on it)",
     )
     parser.add_argument(
         "--max-tracklets",
@@ -126,8 +134,6 @@ def balanced_subset(categories: list[str], lengths: list[int], max_frames: int) 
 
 
 def run(args: argparse.Namespace) -> int:
-    import gymnasium as gym
-
     from envs.synthetic import ensure_world
     from envs.tracking_env import OBSERVATION_KEYS, make_kitti_env
     from trackers.baselines import BASELINES
@@ -140,9 +146,15 @@ def run(args: argparse.Namespace) -> int:
         save_report,
     )
     from training.loading import load_tracker
+    from training.parallel import resolve_workers
 
     if args.max_tracklets is not None and args.max_tracklets < 1:
         raise SystemExit(f"--max-tracklets must be >= 1, got {args.max_tracklets}")
+    if args.num_envs < 1:
+        raise SystemExit(f"--num-envs must be >= 1, got {args.num_envs}")
+    if args.num_envs > 1 and args.workers not in (None, 1):
+        raise SystemExit("--workers > 1 cannot be combined with --num-envs > 1 (choose one)")
+    workers = resolve_workers(1 if args.num_envs > 1 else args.workers, "--workers")
     start = time.perf_counter()
     print(announcement(args.preset, args.sensor, args.seed), flush=True)
     root = ensure_world(preset=args.preset, sensor=args.sensor, seed=args.seed)
@@ -170,7 +182,6 @@ def run(args: argparse.Namespace) -> int:
             "balanced over categories; --max-frames 0 for all)",
             flush=True,
         )
-    vec = None
     reports = {}
     for name in names:
         try:
@@ -187,33 +198,28 @@ def run(args: argparse.Namespace) -> int:
         keys = observation_keys_for([tracker])
         # a tracker trained with other env options (recipe v2) or reading an opt-in
         # observation key (M2-Track's previous frame) gets its own env
-        if options or keys != OBSERVATION_KEYS:
-            own = make_kitti_env(
+        own = options or keys != OBSERVATION_KEYS
+        target = env
+        if own:
+            target = make_kitti_env(
                 root=str(root),
                 split=args.split,
                 setting=args.setting,
                 observation_keys=keys,
                 **options,
             )
-            reports[name] = evaluate(
-                tracker,
-                own,
-                tracklets=subset,
-                name=name,
-                progress=not args.no_progress,
-                num_envs=max(1, args.num_envs),
-            )
-            own.close()
-            continue
-        if name in BASELINES or name in BASELINE_NAMES or args.num_envs <= 1:
-            target = env
-        else:
-            if vec is None:
-                vec = gym.vector.SyncVectorEnv([lambda: env.clone() for _ in range(args.num_envs)])
-            target = vec
+        baseline = name in BASELINES or name in BASELINE_NAMES  # microseconds per act
         reports[name] = evaluate(
-            tracker, target, tracklets=subset, name=name, progress=not args.no_progress
+            tracker,
+            target,
+            tracklets=subset,
+            name=name,
+            progress=not args.no_progress,
+            num_envs=1 if baseline else args.num_envs,
+            workers=1 if baseline else workers,
         )
+        if own:
+            target.close()
     if not reports:
         print("[demo] no tracker could be loaded")
         return 1
@@ -226,6 +232,4 @@ def run(args: argparse.Namespace) -> int:
         f"\n[demo] wrote {out / 'report.json'}, {', '.join(str(p) for p in paths)} "
         f"in {time.perf_counter() - start:.0f} s"
     )
-    if vec is not None:
-        vec.close()
     return 0

@@ -10,11 +10,19 @@ weather option) can reuse or extend it with extra env keywords. Each tracker is 
 the env options it records (``tracker.env_options``, e.g. recipe v2's merged template): one env
 per distinct option set; an explicit ``--template-mode`` wins, and ``evaluate`` warns for a
 tracker it contradicts (docs/recipe.md).
+
+The tracklets are sharded over ``--workers`` processes (every usable core by default; the
+results do not depend on it), ``--eval-seeds`` gives one report averaged over seeds, every
+number gets a 90 % bootstrap interval over tracklets, an oracle ``--reference`` is marked, and
+``--save-boxes`` writes every frame's boxes (docs/evaluation.md). Every flag is checked before
+any tracker is loaded or directory made.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+from dataclasses import dataclass
 from typing import Any
 
 from envs.data.nuscenes import SOT_SPLITS
@@ -33,16 +41,41 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_env_arguments(parser)
     parser.add_argument("--out", default=None, metavar="DIR", help="write JSON and PNG plots here")
     parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="shard the tracklets (with --weather: the conditions) over N forked processes, "
+        "one torch thread each; per-tracklet results do not depend on N (default: every usable "
+        "core; 1 with --num-envs > 1 or --device cuda; more than the cores is clamped)",
+    )
+    parser.add_argument(
+        "--device",
+        default="cpu",
+        help="cpu, or cuda[:N]: the trackers run there on the batched path "
+        "(batch_invariant=False, --num-envs 32 unless given, one process); the report says so",
+    )
+    parser.add_argument(
         "--num-envs",
         type=int,
-        default=1,
-        help="run N sub-envs (SyncVectorEnv) so the tracker acts on batches",
+        default=None,
+        help="run N sub-envs (SyncVectorEnv) so the tracker acts on batches (default 1; 32 "
+        "with --device cuda)",
     )
     parser.add_argument(
         "--eval-seed",
         type=int,
-        default=0,
-        help="seed of the point resampling (per tracklet: results do not depend on --num-envs)",
+        default=None,
+        help="seed of the point resampling (per tracklet: results do not depend on --num-envs "
+        "or --workers; default 0)",
+    )
+    parser.add_argument(
+        "--eval-seeds",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="SEED",
+        help="evaluate at each seed: one report with the mean and each seed's values",
     )
     parser.add_argument(
         "--max-tracklets",
@@ -50,6 +83,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="evaluate the first N only (N >= 1)",
+    )
+    parser.add_argument(
+        "--save-boxes",
+        action="store_true",
+        help="with --out: write every frame's boxes (OUT/boxes/TRACKER.jsonl) and one result "
+        "file per tracklet (OUT/boxes/TRACKER/seedS/SCENE_ID.txt); docs/evaluation.md",
     )
     parser.add_argument(
         "--untrained",
@@ -177,71 +216,182 @@ def build_vector_env(args: argparse.Namespace, num_envs: int, **overrides: Any):
     return gym.vector.SyncVectorEnv([lambda e=env: e.clone() for _ in range(num_envs)])
 
 
+@dataclass(frozen=True)
+class EvalPlan:
+    """How the evaluation runs, resolved from the flags before any work (``report["eval"]``).
+
+    ``batch_invariant`` is the trackers' flag: ``True`` (one sample per forward) on the CPU,
+    ``False`` (one batched forward) on a CUDA device, where batching is what pays."""
+
+    seeds: tuple[int, ...]
+    workers: int
+    num_envs: int
+    device: str
+    batch_invariant: bool
+    oracle: str | None
+
+    def describe(self) -> dict[str, Any]:
+        """The plan as the report's JSON ``eval`` block."""
+        return {
+            "seeds": list(self.seeds),
+            "workers": self.workers,
+            "num_envs": self.num_envs,
+            "device": self.device,
+            "batch_invariant": self.batch_invariant,
+            "oracle": self.oracle,
+        }
+
+
 def run(args: argparse.Namespace) -> int:
-    from training.evaluate import (
-        env_option_groups,
-        evaluate,
-        format_table,
-        observation_keys_for,
-        plot_curves,
-        save_report,
-    )
+    from training.evaluate import env_option_groups, observation_keys_for
     from training.provenance import eval_guard, mark_unseen
 
-    check_args(args)
-    if getattr(args, "weather", None):
-        return _run_weather(args)
+    plan = check_args(args)
     # every tracker before any data or evaluation, so a typo in the last one fails in a second
-    loaded = load_trackers(args)
-    trained = eval_guard(
-        loaded, args, env_kwargs(args)["setting"]
-    )  # provenance: leaks warned (--strict: refused)
+    loaded = load_trackers(args, plan)
+    trained = eval_guard(loaded, args, env_kwargs(args)["setting"])  # leaks warned / --strict
     check_out(args)
-    reports = {}
+    if getattr(args, "weather", None):
+        return _run_weather(args, plan, loaded)
+    if plan.device != "cpu":
+        print(
+            f"note: on {plan.device} the trackers run on the batched path "
+            f"(batch_invariant=False, {plan.num_envs} sub-envs): per-tracklet results can "
+            "differ in the last bits from the CPU's one-sample forwards",
+            file=sys.stderr,
+        )
+    reports, boxes = {}, {}
     # one env per distinct option set the trackers record (e.g. recipe v2's template mode)
     for options, names in env_option_groups(loaded, explicit_env_options(args)):
         group = [loaded[name] for name in names]
         keys = observation_keys_for(group)  # e.g. M2-Track's previous frame
         env = (
             build_env(args, observation_keys=keys, **options)
-            if args.num_envs == 1
-            else build_vector_env(args, args.num_envs, observation_keys=keys, **options)
+            if plan.num_envs == 1
+            else build_vector_env(args, plan.num_envs, observation_keys=keys, **options)
         )
-        n = env.unwrapped.num_tracklets if args.num_envs == 1 else env.get_attr("num_tracklets")[0]
+        n = env.unwrapped.num_tracklets if plan.num_envs == 1 else env.get_attr("num_tracklets")[0]
         subset = None if args.max_tracklets is None else list(range(min(args.max_tracklets, n)))
         for name, tracker in zip(names, group, strict=True):
-            reports[name] = evaluate(
-                tracker,
-                env,
-                seed=args.eval_seed,
-                tracklets=subset,
-                name=name,
-                progress=not args.no_progress,
-            )
+            reports[name], boxes[name] = _evaluate_seeds(args, plan, tracker, env, name, subset)
         env.close()
     reports = {name: reports[name] for name in loaded}  # the order of --tracker
     reports = mark_unseen(reports, trained)  # unseen: only what the file never trained on
-    print(format_table(reports))
-    if args.out:
-        from pathlib import Path
-
-        out = Path(args.out)
-        save_report(reports, out / "report.json")
-        paths = plot_curves(reports, out)
-        print(f"wrote {out / 'report.json'} and {', '.join(str(p) for p in paths)}")
+    _print_and_save(args, reports, boxes)
     return 0
 
 
-def check_args(args: argparse.Namespace) -> None:
-    """Refuse bad counts before anything is built (``SystemExit`` with one line; the CLI turns
-    it into exit status 2)."""
-    if args.num_envs < 1:
+def _evaluate_seeds(args, plan: EvalPlan, tracker, env, name: str, subset):
+    """One tracker at every eval seed -> (the combined report with intervals, ``{seed:
+    per-tracklet boxes}`` when ``--save-boxes``)."""
+    from training.evaluate import evaluate
+    from training.intervals import add_intervals, combine_seeds
+
+    runs = [
+        evaluate(
+            tracker,
+            env,
+            seed=seed,
+            tracklets=subset,
+            name=name,
+            progress=not args.no_progress,
+            workers=plan.workers,
+            record_boxes=args.save_boxes,
+        )
+        for seed in plan.seeds
+    ]
+    boxes = {s: run.pop("boxes", None) for s, run in zip(plan.seeds, runs, strict=True)}
+    report = add_intervals(combine_seeds(runs, plan.seeds))
+    report["eval"] = plan.describe()
+    return report, (boxes if args.save_boxes else None)
+
+
+def _print_and_save(args, reports: dict[str, Any], boxes: dict[str, Any]) -> None:
+    """Print the table; with ``--out``, the report, the plots and (``--save-boxes``) boxes."""
+    from training.evaluate import format_table, plot_curves, save_report
+
+    print(format_table(reports))
+    if not args.out:
+        return
+    from pathlib import Path
+
+    out = Path(args.out)
+    if args.save_boxes:
+        from training.boxes import save_boxes
+
+        for name, per_seed in boxes.items():
+            path = save_boxes(per_seed, name, out / "boxes", observed=_observed(reports[name]))
+            print(f"wrote {path} and the per-tracklet result files beside it")
+    save_report(reports, out / "report.json")
+    paths = plot_curves(reports, out)
+    print(f"wrote {out / 'report.json'} and {', '.join(str(p) for p in paths)}")
+
+
+def _observed(report: dict[str, Any]) -> dict[str, bool]:
+    """``{category: observed}`` of a report (the box file records it per line)."""
+    return {c: bool(e["observed"]) for c, e in report["categories"].items()}
+
+
+def check_args(args: argparse.Namespace) -> EvalPlan:
+    """Refuse every bad value before anything is loaded, built or written (``SystemExit`` with
+    one line; the CLI turns it into exit status 2); returns the resolved :class:`EvalPlan`."""
+    from training.intervals import check_seeds
+    from training.parallel import resolve_workers
+    from training.robustness import check_weather_arguments
+
+    if args.num_envs is not None and args.num_envs < 1:
         raise SystemExit(f"pointtrack eval: --num-envs must be >= 1, got {args.num_envs}")
     if args.max_tracklets is not None and args.max_tracklets < 1:
         raise SystemExit(
             f"pointtrack eval: --max-tracklets must be >= 1, got "
             f"{args.max_tracklets} (leave it out to evaluate every tracklet)"
         )
+    if args.eval_seed is not None and args.eval_seeds is not None:
+        raise SystemExit("pointtrack eval: give --eval-seed or --eval-seeds, not both")
+    if args.eval_seed is not None and args.eval_seed < 0:
+        raise SystemExit(f"pointtrack eval: --eval-seed must be >= 0, got {args.eval_seed}")
+    if args.save_boxes and not args.out:
+        raise SystemExit("pointtrack eval: --save-boxes writes into --out DIR: give --out")
+    try:
+        seeds = check_seeds(
+            args.eval_seeds if args.eval_seeds is not None else [args.eval_seed or 0]
+        )
+        if getattr(args, "weather", None):
+            check_weather_arguments(args)
+            if len(seeds) > 1 or args.save_boxes:
+                raise ValueError("--weather takes one --eval-seed and no --save-boxes")
+        device = check_device(args.device)
+        batched = device != "cpu"
+        num_envs = args.num_envs or (32 if batched else 1)
+        one_process = num_envs > 1 or batched
+        if args.workers is not None and args.workers > 1 and one_process:
+            raise ValueError(
+                f"--workers {args.workers} shards tracklets over processes with one env each; "
+                "it cannot be combined with --num-envs > 1 or a CUDA device (choose one)"
+            )
+        workers = resolve_workers(
+            args.workers if args.workers is not None or not one_process else 1, "--workers"
+        )
+    except ValueError as exc:
+        raise SystemExit(f"pointtrack eval: {exc}") from exc
+    oracle = None if args.reference == "prediction" else args.reference
+    return EvalPlan(tuple(seeds), workers, num_envs, device, not batched, oracle)
+
+
+def check_device(device: str) -> str:
+    """``cpu`` or an available ``cuda[:N]`` (``ValueError`` in one line otherwise)."""
+    if device == "cpu":
+        return device
+    if not device.startswith("cuda"):
+        raise ValueError(f"--device must be cpu or cuda[:N], got {device!r}")
+    from training.pretrain import TrainingError
+    from training.pretrain import check_device as check_cuda
+
+    try:
+        check_cuda(device)
+    except TrainingError as exc:
+        raise ValueError(str(exc)) from exc
+    return device
 
 
 def check_out(args: argparse.Namespace) -> None:
@@ -255,38 +405,49 @@ def check_out(args: argparse.Namespace) -> None:
         why = unwritable_reason(out)
         if why is not None:
             raise SystemExit(f"pointtrack eval: cannot write to --out {out}: {why}")
+        why = unwritable_reason(out / "boxes") if args.save_boxes else None
+        if why is not None:
+            raise SystemExit(
+                f"pointtrack eval: --save-boxes cannot write to {out / 'boxes'}: {why}"
+            )
         remove_stale_temps(out)  # a killed evaluation's half-written report
 
 
-def load_trackers(args: argparse.Namespace) -> dict[str, Any]:
-    """``{name: tracker}`` for every ``--tracker``, all loaded (and so validated) up front."""
+def load_trackers(args: argparse.Namespace, plan: EvalPlan | None = None) -> dict[str, Any]:
+    """``{name: tracker}`` for every ``--tracker``, all loaded (and so validated) up front, on
+    ``plan.device`` with ``plan.batch_invariant`` (learned trackers; no plan: the CPU, one
+    sample per forward, an untrained one seeded by ``args.eval_seed``)."""
     from training.loading import load_tracker
 
     if len(set(args.tracker)) != len(args.tracker):
         raise SystemExit(f"pointtrack eval: a tracker is listed twice: {args.tracker}")
-    return {
-        name: load_tracker(name, untrained=args.untrained, seed=args.eval_seed)
+    loaded = {
+        name: load_tracker(
+            name,
+            untrained=getattr(args, "untrained", False),
+            seed=plan.seeds[0] if plan else args.eval_seed,
+        )
         for name in args.tracker
     }
+    for tracker in loaded.values() if plan else ():
+        if hasattr(tracker, "batch_invariant") and hasattr(tracker, "to"):
+            tracker.to(plan.device)
+            tracker.batch_invariant = plan.batch_invariant
+    return loaded
 
 
-def _run_weather(args: argparse.Namespace) -> int:
+def _run_weather(args: argparse.Namespace, plan: EvalPlan, loaded: dict[str, Any]) -> int:
     """``--weather KINDS``: the adverse-weather benchmark (``training.robustness``): each tracker
     clean and under every kind and level, printed as Tables III-IV of Zhao et al. (adverse-weather
     SOT); with ``--out``,
     JSON, table and plots per tracker under ``<out>/weather_<tracker>/``. ``--num-envs N > 1``
-    runs every condition on N sub-envs (batched ``act``); ``--fog-mode`` picks the fog rule."""
+    runs every condition on N sub-envs (batched ``act``); ``--workers`` runs the conditions in
+    that many processes; ``--fog-mode`` picks the fog rule."""
     from pathlib import Path
 
     from training.evaluate import env_option_groups, observation_keys_for
-    from training.provenance import eval_guard
     from training.robustness import run_weather_eval
 
-    loaded = load_trackers(args)
-    eval_guard(
-        loaded, args, env_kwargs(args)["setting"]
-    )  # provenance: leaks warned (--strict: refused)
-    check_out(args)
     bases = {}  # tracker name -> the clean env of its option set (one per distinct set)
     for options, names in env_option_groups(loaded, explicit_env_options(args)):
         keys = observation_keys_for([loaded[name] for name in names])
@@ -302,16 +463,16 @@ def _run_weather(args: argparse.Namespace) -> int:
             base.clone,  # a fresh env per setting, sharing the data
             args.weather,
             levels=args.weather_levels,
-            seed=args.eval_seed,
+            seed=plan.seeds[0],
             weather_seed=args.weather_seed,
             out_dir=Path(args.out) / f"weather_{slug}" if args.out else None,
             analysis=not args.no_analysis,
             progress=not args.no_progress,
             name=name,
             tracklets=subset,
-            num_envs=args.num_envs if args.num_envs > 1 else None,
+            num_envs=plan.num_envs if plan.num_envs > 1 else None,
             fog_mode=args.fog_mode,
-            workers=args.workers,
+            workers=plan.workers,
         )
     for base in {id(b): b for b in bases.values()}.values():
         base.close()

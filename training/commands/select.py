@@ -50,7 +50,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="world seed the candidates were trained on: its train and test splits are refused",
     )
     parser.add_argument("--eval-seed", type=int, default=0, help="seed of the point resampling")
-    parser.add_argument("--num-envs", type=int, default=8, help="sub-envs per evaluation")
+    parser.add_argument(
+        "--num-envs",
+        type=int,
+        default=1,
+        help="sub-envs per evaluation (batched act; then --workers is 1)",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="processes each evaluation shards its tracklets over, one torch thread each "
+        "(default: every usable core; the scores do not depend on it)",
+    )
     parser.add_argument(
         "--out",
         default=None,
@@ -89,6 +102,9 @@ def run(args: argparse.Namespace) -> int:
     )
 
     try:
+        from training.parallel import resolve_workers
+
+        workers = 1 if args.num_envs > 1 and args.workers is None else args.workers
         config = SelectionConfig(
             setting=args.setting,
             preset=args.preset,
@@ -98,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
             eval_seed=args.eval_seed,
             num_envs=args.num_envs,
             dataset=args.dataset,
+            workers=resolve_workers(workers, "--workers"),
         )
         out = Path(args.out) if args.out else None
         if args.logger is not None and out is None:
