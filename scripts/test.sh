@@ -3,7 +3,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m pip install --quiet torch==2.13.0
-python3 -m pip install --quiet -e ".[test]"
+# the sweep extra too, so the Ray tests (tests/test_sweep.py) run instead of skipping
+python3 -m pip install --quiet -e ".[test,sweep]"
 python3 -m ruff format --check .
 python3 -m ruff check .
 # CI runs the slow tests too; plain `pytest` runs the fast set.

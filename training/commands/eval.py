@@ -308,6 +308,7 @@ def _run_weather(args: argparse.Namespace) -> int:
             num_envs=args.num_envs if args.num_envs > 1 else None,
             fog_mode=args.fog_mode,
             workers=args.workers,
+            backend=args.backend,
         )
     for base in {id(b): b for b in bases.values()}.values():
         base.close()
