@@ -141,7 +141,7 @@ def test_dry_run_prints_each_trial_command(tmp_path, capsys):
     assert main(["sweep", str(path), "--out", str(tmp_path / "out"), "--dry-run"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 4 and all(" -m training.cli train " in line for line in lines)
-    assert lines[0].endswith(str((tmp_path / "out" / "trials" / "weighting-none_seed-0")))
+    assert lines[0].endswith(str(tmp_path / "out" / "trials" / "weighting-none_seed-0"))
 
 
 @needs_ray

@@ -192,13 +192,14 @@ def _fit(
     from ray import tune
 
     errors: dict[str, str] = {}
+    finished: list[str] = []
 
     class Progress(tune.Callback):
         """One line per finished or failed trial, in the driver."""
 
         def on_trial_complete(self, iteration, trials, trial, **info):
-            name = trial.config["task"]["name"]
-            log(f"trial {name}: done ({sum(t.status == 'TERMINATED' for t in trials)} now)")
+            finished.append(trial.config["task"]["name"])
+            log(f"trial {finished[-1]}: done ({len(finished)} of {len(tasks)})")
 
         def on_trial_error(self, iteration, trials, trial, **info):
             name = trial.config["task"]["name"]
