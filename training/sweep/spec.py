@@ -227,8 +227,11 @@ def _trial(
             build_config(args)  # ConfigError (a ValueError) names the key
     except (SpecError, ValueError) as exc:
         raise SpecError(f"trial {name}: {exc}") from None
-    if spec.command == "eval --weather" and not args.weather:
-        raise SpecError(f"trial {name}: command 'eval --weather' needs a weather value")
+    if (spec.command == "eval --weather") != bool(getattr(args, "weather", None)):
+        raise SpecError(
+            f"trial {name}: the weather benchmark is command 'eval --weather' (with a weather "
+            "value); command 'eval' runs without one"
+        )
     return Trial(name=name, overrides=dict(overrides), argv=argv)
 
 
