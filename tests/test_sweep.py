@@ -185,6 +185,7 @@ def test_unreachable_address_is_one_line_and_writes_nothing(tmp_path, capsys):
     assert not out.exists()
 
 
+@pytest.mark.slow  # ~40-80 s on 2 cores: two Ray start-ups and five tiny trainings
 @needs_ray
 def test_tiny_sweep_killed_then_resumed_runs_only_what_was_left(tmp_path, capsys):
     path = write_spec(tmp_path, TINY)
@@ -210,6 +211,13 @@ def test_tiny_sweep_killed_then_resumed_runs_only_what_was_left(tmp_path, capsys
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
         log.close()
+    # Ray's workers run in their own process groups and end when they notice their raylet is
+    # gone; each trial's command dies with its worker (PR_SET_PDEATHSIG): none may outlive it
+    deadline = time.monotonic() + 30
+    while _processes_naming(out):
+        assert time.monotonic() < deadline, f"trial commands outlived the sweep: {out}"
+        time.sleep(0.2)
+    time.sleep(1.0)  # a worker whose command had just ended writes its trial.json now
     done_before = {p.parent.name: p.stat().st_mtime_ns for p in trials.glob("*/trial.json")}
     assert 1 <= len(done_before) < 4
     assert not (out / "summary.md").exists()
@@ -268,6 +276,18 @@ def test_ray_weather_backend_equals_local(one_torch_thread):
     local, result = run("local", None)
     assert run("ray", 2)[0] == local
     assert result["weather"]["fog"][3]["frames"] > 0 and result["analysis"]["fog"][1]
+
+
+def _processes_naming(path: Path) -> list[int]:
+    """Process ids whose command line mentions ``path``."""
+    pids = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if str(path).encode() in cmdline.read_bytes():
+                pids.append(int(cmdline.parent.name))
+        except OSError:  # ended meanwhile
+            continue
+    return pids
 
 
 def _untimed(value):
