@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from training.cli import main
-from training.sweep.runner import SweepError, _task, check_out, execute_trial
+from training.sweep.runner import SweepError, _resume_flags, _task, check_out, execute_trial
 from training.sweep.spec import SpecError, load_spec, parse_spec
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -154,7 +154,8 @@ def test_a_trial_runs_its_command_and_records_its_metrics(tmp_path):
     assert record["metrics"] == metrics and set(metrics) == {"success", "precision"}
     report = json.loads((tmp_path / "trials" / trial.name / "report.json").read_text())
     assert metrics["success"] == report["previous_box"]["mean"]["success"]
-    assert record["argv"][-2:] == ["--out", task["dir"]] and "--eval-seed" in record["argv"]
+    assert record["argv"][-3:] == ["--out", task["dir"], "--no-progress"]
+    assert "--eval-seed" in record["argv"]
     bad = {**task, "name": "bad", "dir": str(tmp_path / "bad"), "argv": task["argv"] + ["--x"]}
     with pytest.raises(RuntimeError, match=r"bad: exit status 2; see .*bad/trial.log"):
         execute_trial(bad)
@@ -162,12 +163,27 @@ def test_a_trial_runs_its_command_and_records_its_metrics(tmp_path):
     assert "unrecognized arguments: --x" in (tmp_path / "bad" / "trial.log").read_text()
 
 
+def test_a_retried_trial_resumes_what_the_killed_try_left(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "trial.log").write_text("$ first try\n")
+    assert _resume_flags("train", run) == [] and _resume_flags("finetune", run) == []
+    (run / "config.yaml").write_text("seed: 0\n")  # killed in its first epoch
+    assert _resume_flags("train", run) == ["--resume"]
+    assert _resume_flags("finetune", run) == ["--overwrite"]  # nothing resumable yet
+    (run / "state.safetensors").write_bytes(b"")
+    assert _resume_flags("finetune", run) == ["--resume"]
+    assert _resume_flags("eval", run) == [] and _resume_flags("select", run) == []
+
+
 def test_dry_run_prints_each_trial_command(tmp_path, capsys):
     path = write_spec(tmp_path, TINY)
     assert main(["sweep", str(path), "--out", str(tmp_path / "out"), "--dry-run"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 4 and all(" -m training.cli train " in line for line in lines)
-    assert lines[0].endswith(str(tmp_path / "out" / "trials" / "weighting-none_seed-0"))
+    assert lines[0].endswith(
+        f"{tmp_path / 'out' / 'trials' / 'weighting-none_seed-0'} --no-progress"
+    )
 
 
 @needs_ray

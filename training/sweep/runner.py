@@ -74,7 +74,8 @@ def trial_command(spec: SweepSpec, trial: Trial, out: Path, gpus: float = 0.0) -
             argv += ["--device", "cuda"]  # Ray sets CUDA_VISIBLE_DEVICES to the trial's GPU
     words = spec.command.split()[:1]  # "eval --weather" runs `eval` (its --weather is in argv)
     run_dir = trial_dir(out, trial).resolve()
-    return [sys.executable, "-m", "training.cli", *words, *argv, "--out", str(run_dir)]
+    command = [sys.executable, "-m", "training.cli", *words, *argv, "--out", str(run_dir)]
+    return command + ["--no-progress"]  # trial.log gets lines, not a redrawn progress bar
 
 
 def check_out(spec: SweepSpec, out: Path, resume: bool) -> list[Trial]:
@@ -212,7 +213,7 @@ def _fit(
     tuner = tune.Tuner(
         trainable,
         param_space={"task": tune.grid_search(tasks)},
-        tune_config=tune.TuneConfig(reuse_actors=False),
+        tune_config=tune.TuneConfig(reuse_actors=True),  # a trial is a subprocess: no state
         run_config=tune.RunConfig(
             name=f"attempt-{attempt}",
             storage_path=str(root),

@@ -37,7 +37,7 @@ from typing import Any
 
 __all__ = ["COMMANDS", "SpecError", "SweepSpec", "Trial", "load_spec", "parse_spec"]
 
-# command -> (module under training.commands, the flags the sweep always passes itself)
+# a spec's command -> its module under training.commands
 COMMANDS: dict[str, str] = {
     "train": "train",
     "finetune": "finetune",
@@ -48,8 +48,17 @@ COMMANDS: dict[str, str] = {
 # flags a trial never takes from the spec: the sweep gives each trial its own run directory
 # and decides on resuming (docs/cluster.md)
 SWEEP_OWNED = frozenset({"out", "resume", "overwrite", "no_progress", "export"})
-SPEC_KEYS = ("name", "command", "base", "grid", "trials", "seed_key", "retries", "threads")
-SPEC_KEYS += ("resources",)
+SPEC_KEYS = (
+    "name",
+    "command",
+    "base",
+    "grid",
+    "trials",
+    "seed_key",
+    "retries",
+    "threads",
+    "resources",
+)
 DEFAULT_SEED_KEY = {"train": "seed", "finetune": "seed", "select": "eval_seed"}
 
 
@@ -81,10 +90,6 @@ class SweepSpec:
     cpus: float = 1.0
     gpus: float | None = None  # None: 1 per trial where the cluster has GPUs, else 0
     source: dict[str, Any] = field(default_factory=dict)  # the YAML mapping as read
-
-    @property
-    def module(self) -> str:
-        return COMMANDS[self.command]
 
 
 class _Parser(argparse.ArgumentParser):
