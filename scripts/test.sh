@@ -5,7 +5,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m pip install --quiet torch==2.13.0
-python3 -m pip install --quiet -e ".[test,video,viewer,tensorboard,docs]"
+# every extra, so the tests of each (video, viewer, Ray sweeps, ...) run instead of skipping
+python3 -m pip install --quiet -e ".[test,video,viewer,tensorboard,docs,fast,sweep]"
 python3 -m ruff format --check .
 python3 -m ruff check .
 site_dir="$(mktemp -d)"

@@ -155,7 +155,7 @@ def test_forked_workers_give_the_one_process_result(one_torch_thread):
 
 
 def test_map_forked_keeps_order_and_names_a_failing_item():
-    from training.robustness import map_forked
+    from training.parallel import map_forked
 
     seen = []
     assert map_forked(lambda x: x * x, [1, 2, 3, 4, 5], 2, lambda i, r: seen.append(i)) == [

@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train": ("train", "pretrain P2B / BAT / GPT (plain, decorrelation-weighted, SAM)"),
     "select": ("select", "rank checkpoints by observed Success pooled over validation worlds"),
     "finetune": ("finetune", "RL fine-tuning of a pretrained tracker with stable-baselines3"),
+    "sweep": ("sweep", "run a spec's seeds / grid / weather conditions as Ray Tune trials"),
     "bench": ("bench", "run the speed benchmarks and print their numbers"),
     "render": ("render", "watch trackers on one tracklet: a video or a rerun 3D recording"),
     "demo": ("demo", "generate the small world and compare the trackers on it"),

@@ -127,6 +127,15 @@ def _dist_info() -> tuple[int, int]:
     return rank, world
 
 
+def _process_device(device: str, world: int) -> torch.device:
+    """Under torchrun a bare ``cuda`` is this process's GPU on its node (``LOCAL_RANK``), so
+    ``--nproc-per-node N`` on a node of N GPUs (and on every node of a multi-node run, where
+    ``RANK`` is global and ``LOCAL_RANK`` per node) puts one process on each."""
+    if device == "cuda" and world > 1 and "LOCAL_RANK" in os.environ:
+        return torch.device("cuda", int(os.environ["LOCAL_RANK"]))
+    return torch.device(device)
+
+
 def default_model_factory(cfg: TrainConfig) -> torch.nn.Module:
     import trackers
 
@@ -313,7 +322,7 @@ class Trainer:
         self.cfg = cfg.validate()
         self.rank, self.world = _dist_info()
         self.main = self.rank == 0
-        self.device = torch.device(cfg.device)
+        self.device = _process_device(cfg.device, self.world)
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
         if cfg.batch_size % self.world:
@@ -328,6 +337,8 @@ class Trainer:
 
             if not dist.is_initialized():
                 backend = "nccl" if self.device.type == "cuda" else "gloo"
+                if self.device.index is not None:
+                    torch.cuda.set_device(self.device)  # NCCL's collectives use this GPU
                 dist.init_process_group(backend)
                 self.owns_process_group = True
             self.pg = dist

@@ -63,7 +63,6 @@ __all__ = [
     "HAUSDORFF_EDGES_M",
     "format_weather_table",
     "hausdorff",
-    "map_forked",
     "plot_analysis",
     "plot_success_vs_level",
     "robustness_metrics",
@@ -74,6 +73,7 @@ __all__ = [
 DISTANCE_EDGES_M = (0.0, 10.0, 20.0, 30.0, 40.0, 50.0, math.inf)
 HAUSDORFF_EDGES_M = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0, 3.0, 3.5, math.inf)
 GROUPS = ("mean", "observed", "unseen")
+BACKENDS = ("local", "ray")  # what runs the weather conditions (run_weather_benchmark)
 
 
 # --------------------------------------------------------------------------- metrics
@@ -234,6 +234,7 @@ def run_weather_benchmark(
     num_envs: int | None = None,
     fog_mode: str = "reference",
     workers: int | None = None,
+    backend: str = "local",
 ) -> dict[str, Any]:
     """Evaluate ``tracker`` clean and under every ``(kind, level)``; see the module docstring.
 
@@ -261,6 +262,9 @@ def run_weather_benchmark(
         workers: run the settings in this many forked processes (one torch thread each; the
             settings are independent, so the result is the same as with ``None``, one process).
             Needs the ``fork`` start method (Linux); progress bars are off in the workers.
+        backend: ``"local"`` (the forked processes above) or ``"ray"``: the settings as Ray
+            tasks (:func:`training.sweep.ray_backend.map_ray`; ``RAY_ADDRESS`` or a local Ray of
+            ``workers`` CPUs), the same result bit for bit; needs the ``sweep`` extra.
     """
     import gymnasium as gym
 
@@ -308,7 +312,13 @@ def run_weather_benchmark(
         label = "clean" if kind is None else describe(kind, level)
         say(f"{label}: success {mean['success']:.2f} precision {mean['precision']:.2f}")
 
-    outcomes = dict(zip(conditions, map_forked(one, conditions, workers, said), strict=True))
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}; got {backend!r}")
+    if backend == "ray":
+        from training.sweep.ray_backend import map_ray as run_all
+    else:
+        run_all = map_forked
+    outcomes = dict(zip(conditions, run_all(one, conditions, workers, said), strict=True))
     clean, clean_records = outcomes[(None, None)]
     result: dict[str, Any] = {
         "tracker": name,
@@ -556,6 +566,14 @@ def add_weather_arguments(parser) -> None:
         "returns relocate points, none removed; default) or lossy (shifted "
         "tables, weak returns removed); docs/weather.md",
     )
+    parser.add_argument(
+        "--backend",
+        default="local",
+        choices=BACKENDS,
+        help="what runs the weather conditions: local (forked processes, --workers) or ray "
+        "(Ray tasks on RAY_ADDRESS or a local Ray of --workers CPUs; the same result; needs "
+        "pip install 'pointtrack[sweep]')",
+    )
 
 
 def parse_weather_levels(text: str | Sequence[int]) -> tuple[int, ...]:
@@ -610,6 +628,7 @@ def run_weather_eval(
     num_envs: int | None = None,
     fog_mode: str = "reference",
     workers: int | None = None,
+    backend: str = "local",
 ) -> dict[str, Any]:
     """What ``pointtrack eval --weather ...`` runs: :func:`run_weather_benchmark`, then print the
     Tables III–IV layout and (with ``out_dir``) write JSON, table and plots."""
@@ -630,6 +649,7 @@ def run_weather_eval(
         num_envs=num_envs,
         fog_mode=fog_mode,
         workers=workers,
+        backend=backend,
     )
     print_fn(format_weather_table(result))
     if out_dir is not None:

@@ -473,6 +473,7 @@ def _run_weather(args: argparse.Namespace, plan: EvalPlan, loaded: dict[str, Any
             num_envs=plan.num_envs if plan.num_envs > 1 else None,
             fog_mode=args.fog_mode,
             workers=plan.workers,
+            backend=args.backend,
         )
     for base in {id(b): b for b in bases.values()}.values():
         base.close()
