@@ -7,7 +7,9 @@ Entry points:
 * :func:`generate_world` — generate a world into a directory (``pointtrack generate``).
 * :func:`verify_world` — check a world's files against the sizes and SHA-256 digests of its
   manifest (``pointtrack generate --verify DIR``).
-* :data:`PRESETS` (``tiny``, ``small``, ``default``) and :data:`SENSORS` (``hdl64``, ``hdl32``).
+* :data:`PRESETS` (``tiny``, ``small``, ``default``), :data:`KITTI_MOTION_PRESETS` (``tiny-km``,
+  ``small-km``, ``default-km``: the motion fitted to KITTI, :mod:`envs.synthetic.kitti_motion`)
+  and :data:`SENSORS` (``hdl64``, ``hdl32``).
 
 Read a world with ``envs.data.KittiTracking(root, split, categories)``.
 """
@@ -17,6 +19,7 @@ from envs.synthetic.objects import CATEGORIES, SIZE_STATS
 from envs.synthetic.sensor import SENSORS, SensorModel, get_sensor
 from envs.synthetic.world import (
     GENERATOR_VERSION,
+    KITTI_MOTION_PRESETS,
     PRESETS,
     Preset,
     clean_stale_temps,
@@ -31,6 +34,7 @@ __all__ = [
     "CATEGORIES",
     "GENERATOR_VERSION",
     "KITTI_LIKE_CALIBRATION",
+    "KITTI_MOTION_PRESETS",
     "PRESETS",
     "SENSORS",
     "SIZE_STATS",
