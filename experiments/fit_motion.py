@@ -14,7 +14,7 @@ The search is a coordinate search over the constants in ``KNOBS`` (multiplicativ
 halved when no step improves). It prints every trial's loss and, at the end, the fitted
 constants to paste into KITTI_MOTION and the per-category table.
 
-    python experiments/fit_motion.py --real ../shared/kitti-tracking-labels [--rounds 2]
+    python -m experiments.fit_motion --real ../shared/kitti-tracking-labels [--rounds 2]
 """
 
 from __future__ import annotations
@@ -29,16 +29,12 @@ import numpy as np
 
 from envs.data.kitti import write_labels
 from envs.data.motion import CATEGORIES, CategoryMotion, label_motion
+from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
 from envs.synthetic.kitti_motion import KITTI_MOTION, KittiMotion
+from envs.synthetic.presets import get_preset
 from envs.synthetic.scene import render_frame
 from envs.synthetic.sensor import get_sensor
-from envs.synthetic.world import (
-    KITTI_LIKE_CALIBRATION,
-    generated_scenes,
-    get_preset,
-    label_rows,
-    split_tracks,
-)
+from envs.synthetic.world import generated_scenes, label_rows, split_tracks
 
 TRAIN_SCENES = range(0, 17)
 # name -> (getter, setter) of a positive scalar knob of KittiMotion

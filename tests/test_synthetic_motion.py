@@ -12,9 +12,10 @@ import pytest
 from envs.data.motion import label_motion
 from envs.synthetic import CATEGORIES, ensure_world, generate_world, get_preset, get_sensor
 from envs.synthetic.kitti_motion import KITTI_MOTION, scene_plan
+from envs.synthetic.presets import Preset
 from envs.synthetic.scene import SceneConfig, build_scene
 from envs.synthetic.scene_types import check_motion
-from envs.synthetic.world import Preset, world_identity
+from envs.synthetic.world import world_identity
 
 TRAIN_SCENES = range(0, 17)
 

@@ -16,17 +16,14 @@ Read a world with ``envs.data.KittiTracking(root, split, categories)``.
 
 from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
 from envs.synthetic.objects import CATEGORIES, SIZE_STATS
+from envs.synthetic.presets import KITTI_MOTION_PRESETS, PRESETS, Preset, get_preset
 from envs.synthetic.sensor import SENSORS, SensorModel, get_sensor
 from envs.synthetic.world import (
     GENERATOR_VERSION,
-    KITTI_MOTION_PRESETS,
-    PRESETS,
-    Preset,
     clean_stale_temps,
     default_cache_dir,
     ensure_world,
     generate_world,
-    get_preset,
     verify_world,
 )
 

@@ -42,6 +42,7 @@ import numpy as np
 
 from envs.data.nuscenes import LIDAR_CHANNEL, split_scenes
 from envs.synthetic.objects import CATEGORIES
+from envs.synthetic.presets import get_preset
 from envs.synthetic.scene import (
     agent_boxes_world,
     render_frame,
@@ -56,7 +57,6 @@ from envs.synthetic.world import (
     clean_stale_temps,
     default_cache_dir,
     generated_scenes,
-    get_preset,
     manifest_matches,
     progress_bar,
     remove_tree,

@@ -1,4 +1,5 @@
-"""Presets, the KITTI-layout writer, and the generate-once cache of synthetic worlds.
+"""The KITTI-layout writer and the generate-once cache of synthetic worlds (their sizes:
+:mod:`envs.synthetic.presets`).
 
 A world directory holds ``velodyne/SSSS/FFFFFF.bin``, ``label_02/SSSS.txt``, ``calib/SSSS.txt``
 (the KITTI tracking layout, so :class:`envs.data.KittiTracking` reads it unchanged) and
@@ -25,7 +26,7 @@ import shutil
 import uuid
 import warnings
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -41,21 +42,18 @@ from envs.data.kitti import (
 from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
 from envs.synthetic.kitti_motion import KittiMotion
 from envs.synthetic.objects import CATEGORIES
+from envs.synthetic.presets import Preset, get_preset
 from envs.synthetic.replay import build_replay_scene, replay_scene_ids
 from envs.synthetic.scene import render_frame
-from envs.synthetic.scene_types import DT, FrameResult, Scene, SceneConfig, check_motion
+from envs.synthetic.scene_types import DT, FrameResult, Scene, SceneConfig
 from envs.synthetic.sensor import SensorModel, get_sensor
 from envs.synthetic.street import build_scene
 
 __all__ = [
     "GENERATOR_VERSION",
-    "KITTI_MOTION_PRESETS",
-    "PRESETS",
-    "Preset",
     "default_cache_dir",
     "ensure_world",
     "generate_world",
-    "get_preset",
     "MAX_LABEL_GAP",
     "MIN_LABEL_POINTS",
     "MIN_TRACK_FRAMES",
@@ -84,62 +82,6 @@ def _source_digest() -> str:
 SOURCE_DIGEST = _source_digest()
 MANIFEST = "manifest.json"
 IMAGE_SIZE = (1242, 375)  # KITTI camera 2 image, pixels (width, height)
-
-
-@dataclass(frozen=True)
-class Preset:
-    """A named world size.
-
-    Attributes:
-        name: preset name.
-        scenes: scene numbers (the KITTI split applies: train 0–16, val 17–18, test 19–20).
-        frames: ``(min, max)`` frames per scene (10 Hz), drawn per scene from the seed.
-        density: traffic / people multiplier (see :class:`SceneConfig`).
-        static_density: trees / poles multiplier.
-        column_factor: keep every n-th azimuth column of the sensor (``tiny`` uses 2: half the
-            horizontal resolution, so that it generates in seconds).
-        motion: the motion model (:mod:`envs.synthetic.kitti_motion`): ``"v1"`` (the original) or
-            ``"kitti"`` (fitted to the KITTI train labels).
-    """
-
-    name: str
-    scenes: tuple[int, ...]
-    frames: tuple[int, int]
-    density: float
-    static_density: float
-    column_factor: int = 1
-    motion: str = "v1"
-
-    def __post_init__(self) -> None:
-        check_motion(self.motion)
-
-
-PRESETS: dict[str, Preset] = {
-    # Tests: three short scenes, one per split; every category in every scene; half resolution.
-    "tiny": Preset("tiny", (0, 17, 19), (24, 24), 0.5, 0.5, column_factor=2),
-    # Demo: seven scenes (3 train, 2 val, 2 test), about a minute.
-    "small": Preset("small", (0, 1, 2, 17, 18, 19, 20), (50, 50), 0.8, 1.0),
-    # Benchmark: 21 scenes split like KITTI tracking.
-    "default": Preset("default", tuple(range(21)), (60, 140), 1.0, 1.0),
-}
-
-# The same sizes with the motion fitted to KITTI's train labels ("km": KITTI motion): targets
-# and ego move as in KITTI (docs/data.md, "Motion against KITTI"). A dict of their own: PRESETS
-# stays the frozen v1 worlds that tests, golden episodes and shipped checkpoints name.
-KITTI_MOTION_PRESETS: dict[str, Preset] = {
-    "tiny-km": Preset("tiny-km", (0, 17, 19), (24, 24), 0.5, 0.5, column_factor=2, motion="kitti"),
-    "small-km": Preset("small-km", (0, 1, 2, 17, 18, 19, 20), (50, 50), 0.8, 1.0, motion="kitti"),
-    "default-km": Preset("default-km", tuple(range(21)), (60, 140), 1.0, 1.0, motion="kitti"),
-}
-
-
-def get_preset(name: str) -> Preset:
-    """The preset called ``name`` (of :data:`PRESETS` or :data:`KITTI_MOTION_PRESETS`); a
-    ``ValueError`` lists the valid names otherwise."""
-    presets = {**PRESETS, **KITTI_MOTION_PRESETS}
-    if name not in presets:
-        raise ValueError(f"unknown preset {name!r}; valid presets: {', '.join(presets)}")
-    return presets[name]
 
 
 def _check_seed(seed: int) -> int:
@@ -484,7 +426,7 @@ def generate_world(
             it is reused as is; another non-empty directory raises ``FileExistsError`` unless
             ``overwrite``.
         preset: ``"tiny"``, ``"small"``, ``"default"`` or their KITTI-motion versions
-            ``"tiny-km"``, ``"small-km"``, ``"default-km"`` (see :data:`PRESETS`).
+            ``"tiny-km"``, ``"small-km"``, ``"default-km"`` (see :mod:`envs.synthetic.presets`).
         sensor: ``"hdl64"`` (KITTI-like) or ``"hdl32"`` (nuScenes-like).
         seed: non-negative integer; the same seed gives byte-identical files.
         labels_dir: a KITTI ``label_02`` + ``calib`` folder: replay its labelled objects (real
