@@ -124,9 +124,11 @@ def walk(
     y_lo: float,
     y_hi: float,
     speed: float,
+    heading_noise: float = 0.02,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A pedestrian walking in the strip ``y_lo <= y <= y_hi``: smooth heading wander, pauses and
-    occasional turn-arounds. Returns poses ``(n, 3)`` and speeds ``(n,)``."""
+    """A pedestrian walking in the strip ``y_lo <= y <= y_hi``: smooth heading wander (noise
+    ``heading_noise`` rad a frame), pauses and occasional turn-arounds. Returns poses ``(n, 3)``
+    and speeds ``(n,)``."""
     pose = np.empty((n, 3))
     v = np.empty(n)
     x, y, th = x0, y0, heading
@@ -144,7 +146,7 @@ def walk(
             if rng.random() < 0.004:
                 base = base + math.pi
             cur_v = min(cur_v + 1.0 * DT * 4, speed)
-        dth = 0.9 * dth + rng.normal(0.0, 0.02)
+        dth = 0.9 * dth + rng.normal(0.0, heading_noise)
         th = th + dth + 0.08 * math.sin(base - th)
         # Stay inside the walking strip: steer back along the street near its edges.
         if (y <= y_lo and math.sin(th) < 0) or (y >= y_hi and math.sin(th) > 0):

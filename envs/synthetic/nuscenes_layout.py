@@ -6,11 +6,11 @@ intensity 0-255, ring index), one small map mask per log under ``DIR/maps/`` (th
 that it exists) and ``DIR/manifest.json``. Read it with ``envs.data.NuScenesTracking``.
 
 What is simulated. The scenes of the KITTI-layout world (same :func:`build_scene`, same seeds,
-same scans at the same frames) run at 10 Hz; every 5th frame is a key frame (2 Hz, as nuScenes
-annotates), and only key frames are rendered and written (no sweeps). A key frame annotates
-every agent within :data:`~envs.synthetic.scene.LABEL_RANGE` all around the sensor (nuScenes
-annotates 360 degrees) that returns at least ``MIN_LABEL_POINTS`` points of its own;
-``num_lidar_pts`` holds that count. An agent keeps one instance over the scene, so a hidden
+same motion version, same scans at the same frames) run at 10 Hz; every 5th frame is a key frame
+(2 Hz, as nuScenes annotates), and only key frames are rendered and written (no sweeps). A key
+frame annotates every agent within :data:`~envs.synthetic.scene.LABEL_RANGE` all around the
+sensor (nuScenes annotates 360 degrees) that returns at least ``MIN_LABEL_POINTS`` points of its
+own; ``num_lidar_pts`` holds that count. An agent keeps one instance over the scene, so a hidden
 stretch is a gap in its annotation chain. Visibility is not simulated (``visibility_token`` is
 empty).
 
@@ -42,6 +42,7 @@ import numpy as np
 
 from envs.data.nuscenes import LIDAR_CHANNEL, split_scenes
 from envs.synthetic.objects import CATEGORIES
+from envs.synthetic.presets import get_preset
 from envs.synthetic.scene import (
     agent_boxes_world,
     render_frame,
@@ -56,7 +57,6 @@ from envs.synthetic.world import (
     clean_stale_temps,
     default_cache_dir,
     generated_scenes,
-    get_preset,
     manifest_matches,
     progress_bar,
     remove_tree,
@@ -466,7 +466,9 @@ def generate_nuscenes_world(
 
     Args:
         preset: ``tiny``, ``small`` or ``default`` (scene numbers and lengths of the KITTI-layout
-            world; key frames are every 5th frame).
+            world; key frames are every 5th frame), or ``tiny-km`` / ``small-km`` /
+            ``default-km``: the motion fitted to KITTI, the same per second as in the KITTI
+            layout, sampled at the 2 Hz key frames.
         sensor: ``hdl32`` (nuScenes-like, the default) or ``hdl64``.
         seed: non-negative integer; the same seed gives byte-identical files.
         version: the table folder name (``v1.0-mini`` by default).

@@ -23,18 +23,28 @@ __all__ = [
     "DT",
     "FOV_HALF_ANGLE",
     "LABEL_RANGE",
+    "MOTION_VERSIONS",
     "Agent",
     "FrameResult",
     "Ground",
     "Scene",
     "SceneConfig",
+    "check_motion",
 ]
 
 DT = 0.1  # seconds per frame (10 Hz, as KITTI)
 FOV_HALF_ANGLE = math.radians(45.0)  # labelled field of view: the front camera, as KITTI
 LABEL_RANGE = 70.0  # metres; objects farther away are not labelled
+MOTION_VERSIONS = ("v1", "kitti")  # see envs.synthetic.kitti_motion
 _F = np.float32
 _F = np.float32
+
+
+def check_motion(name: str) -> str:
+    """``name`` if it is a motion version; a ``ValueError`` naming the valid ones otherwise."""
+    if name not in MOTION_VERSIONS:
+        raise ValueError(f"unknown motion {name!r}; valid motions: {', '.join(MOTION_VERSIONS)}")
+    return name
 
 
 @dataclass(frozen=True)
@@ -46,12 +56,14 @@ class SceneConfig:
         density: multiplier of the number of moving and parked agents (1 = city street).
         static_density: multiplier of trees, poles, signs and buildings' detail.
         required: categories that must appear as labelled targets (placed in view mid-scene).
+        motion: the motion model, ``"v1"`` or ``"kitti"`` (:mod:`envs.synthetic.kitti_motion`).
     """
 
     n_frames: int
     density: float = 1.0
     static_density: float = 1.0
     required: tuple[str, ...] = CATEGORIES
+    motion: str = "v1"
 
     def __post_init__(self) -> None:
         if self.n_frames < 2:
@@ -64,6 +76,7 @@ class SceneConfig:
         bad = [c for c in self.required if c not in CATEGORIES]
         if bad:
             raise ValueError(f"unknown required categories {bad}; valid: {', '.join(CATEGORIES)}")
+        check_motion(self.motion)
 
 
 @dataclass

@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from envs.synthetic.kitti_motion import KittiMotion, scene_plan
 from envs.synthetic.motion import cumdist, drift, lane_path, polyline_walk, speed_profile, walk
 from envs.synthetic.objects import make_object, sample_size
 from envs.synthetic.raycast import BOX, CYLINDER, ELLIPSOID, Parts
@@ -113,11 +114,15 @@ def make_pole(
         st.composite(parts, [x, y, z + (hgt + 0.6) / 2, 0.2, 0.8, hgt + 0.7, 0.0])
 
 
-def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
-    """Generate scene ``scene_id`` of the world with ``seed``."""
+def build_scene(
+    scene_id: int, seed: int, config: SceneConfig, motion_params: KittiMotion | None = None
+) -> Scene:
+    """Generate scene ``scene_id`` of the world with ``seed`` (``motion_params``: constants of
+    the ``"kitti"`` motion other than the fitted ones, for ``experiments/fit_motion.py``)."""
     rng = np.random.default_rng([int(seed), int(scene_id), 7])
     n = config.n_frames
     dens, sdens = config.density, config.static_density
+    plan = scene_plan(config.motion, seed, scene_id, motion_params)  # None: v1, written here
 
     # ---- road layout
     lane_w = rng.uniform(3.2, 3.7)
@@ -135,12 +140,17 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
     # ---- ego motion
     standing = rng.random() < 0.15
     v_ego = speed_profile(rng, n, 0.0 if standing else rng.uniform(3.0, 11.0), 0.1)
+    if plan is not None:
+        standing, v_ego = plan.ego_speed(n)
     ego_lane = -(int(rng.integers(0, n_lanes)) + 0.5) * lane_w
     s_ego = cumdist(v_ego)
     wiggle = 0.15 * np.sin(s_ego / rng.uniform(20.0, 60.0) + rng.uniform(0, 2 * np.pi))
     ego = np.stack([s_ego, ego_lane + wiggle, np.zeros(n)], 1)
     ego[1:, 2] = np.arctan2(np.diff(ego[:, 1]), np.maximum(np.diff(ego[:, 0]), 1e-3))
     ego[0, 2] = ego[1, 2] if n > 1 else 0.0
+    if plan is not None:
+        offset, heading = plan.ego_lateral(s_ego)
+        ego[:, 1], ego[:, 2] = ego_lane + offset, heading
     x_min, x_max = -40.0, float(s_ego[-1]) + 90.0
 
     has_cross = rng.random() < 0.5
@@ -356,7 +366,8 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
             )
             pose, v = polyline_walk(rng, n, pts, speed, pause_at=1)
         else:
-            pose, v = walk(rng, n, x0, y0, heading, y_lo, y_hi, speed)
+            noise = 0.02 if plan is None else plan.heading_noise
+            pose, v = walk(rng, n, x0, y0, heading, y_lo, y_hi, speed, noise)
         stride = 1.45 * size[2] / 1.75
         phase = cumdist(v) / stride * 2 * np.pi + rng.uniform(0, 2 * np.pi)
         add_agent("Pedestrian", model, pose, phase, np.clip(v / 1.1, 0.0, 1.0))
@@ -444,7 +455,9 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
                 -1.0,
                 ahead + rng.uniform(0.0, 15.0),
                 rng.uniform(3.0, 6.0),
-                alongside=slow_ego and rng.random() < 0.7,
+                alongside=(slow_ego and rng.random() < 0.7)
+                if plan is None
+                else plan.cyclist_alongside(),
             )
         elif cat == "Bicycle":
             bike_rack(
@@ -484,6 +497,8 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
                 v = np.maximum(v_ego + drift(rng, n), 0.0)
             else:
                 v = speed_profile(rng, n, rng.uniform(5.0, 13.0), 0.05)
+                if plan is not None:
+                    v = plan.traffic_speed(n)
             s = cumdist(v)
             # Vehicles queue along the lane with gaps; the flow covers the visible stretch.
             if ego_lane_flow:
@@ -512,6 +527,8 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
                     turn = (direction * cross_x - lane_w * 0.5, r)
                 x_start = x_c if direction > 0 else -x_c
                 pose = lane_path(s, direction * x_start, y, direction, turn)
+                if plan is not None and turn is None:
+                    pose = plan.weave_pose(pose, s)
                 if (drifting and first) or rng.random() < min(1.0, 0.8 * dens):
                     add_agent(cat, model, pose)
                 first = False
@@ -520,9 +537,12 @@ def build_scene(scene_id: int, seed: int, config: SceneConfig) -> Scene:
     for side in (-1.0, 1.0):
         for _ in range(int(rng.poisson(1.5 * dens))):
             cat = "Cyclist" if rng.random() < 0.7 else "Bicycle"
-            cyclist(cat, side, rng.uniform(x_min, x_max), rng.uniform(3.0, 7.0))
-        for _ in range(int(rng.poisson(6.0 * dens))):
-            pedestrian(side, rng.uniform(x_min + 20, x_max), standing=rng.random() < 0.25)
+            x_mid, v_mean = rng.uniform(x_min, x_max), rng.uniform(3.0, 7.0)
+            cyclist(cat, side, x_mid, v_mean if plan is None else plan.cyclist_speed(v_mean))
+        ped_factor = 1.0 if plan is None else plan.pedestrian_factor
+        for _ in range(int(rng.poisson(6.0 * dens * ped_factor))):
+            standing_share = 0.25 if plan is None else plan.standing_share
+            pedestrian(side, rng.uniform(x_min + 20, x_max), rng.random() < standing_share)
         for _ in range(int(rng.poisson(0.8 * dens))):
             bike_rack(side, rng.uniform(x_min, x_max), int(rng.integers(1, 5)))
 

@@ -1,4 +1,5 @@
-"""Presets, the KITTI-layout writer, and the generate-once cache of synthetic worlds.
+"""The KITTI-layout writer and the generate-once cache of synthetic worlds (their sizes:
+:mod:`envs.synthetic.presets`).
 
 A world directory holds ``velodyne/SSSS/FFFFFF.bin``, ``label_02/SSSS.txt``, ``calib/SSSS.txt``
 (the KITTI tracking layout, so :class:`envs.data.KittiTracking` reads it unchanged) and
@@ -25,7 +26,7 @@ import shutil
 import uuid
 import warnings
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +40,9 @@ from envs.data.kitti import (
     write_scan,
 )
 from envs.synthetic.calibration import KITTI_LIKE_CALIBRATION
+from envs.synthetic.kitti_motion import KittiMotion
 from envs.synthetic.objects import CATEGORIES
+from envs.synthetic.presets import Preset, get_preset
 from envs.synthetic.replay import build_replay_scene, replay_scene_ids
 from envs.synthetic.scene import render_frame
 from envs.synthetic.scene_types import DT, FrameResult, Scene, SceneConfig
@@ -48,12 +51,9 @@ from envs.synthetic.street import build_scene
 
 __all__ = [
     "GENERATOR_VERSION",
-    "PRESETS",
-    "Preset",
     "default_cache_dir",
     "ensure_world",
     "generate_world",
-    "get_preset",
     "MAX_LABEL_GAP",
     "MIN_LABEL_POINTS",
     "MIN_TRACK_FRAMES",
@@ -82,45 +82,6 @@ def _source_digest() -> str:
 SOURCE_DIGEST = _source_digest()
 MANIFEST = "manifest.json"
 IMAGE_SIZE = (1242, 375)  # KITTI camera 2 image, pixels (width, height)
-
-
-@dataclass(frozen=True)
-class Preset:
-    """A named world size.
-
-    Attributes:
-        name: preset name.
-        scenes: scene numbers (the KITTI split applies: train 0–16, val 17–18, test 19–20).
-        frames: ``(min, max)`` frames per scene (10 Hz), drawn per scene from the seed.
-        density: traffic / people multiplier (see :class:`SceneConfig`).
-        static_density: trees / poles multiplier.
-        column_factor: keep every n-th azimuth column of the sensor (``tiny`` uses 2: half the
-            horizontal resolution, so that it generates in seconds).
-    """
-
-    name: str
-    scenes: tuple[int, ...]
-    frames: tuple[int, int]
-    density: float
-    static_density: float
-    column_factor: int = 1
-
-
-PRESETS: dict[str, Preset] = {
-    # Tests: three short scenes, one per split; every category in every scene; half resolution.
-    "tiny": Preset("tiny", (0, 17, 19), (24, 24), 0.5, 0.5, column_factor=2),
-    # Demo: seven scenes (3 train, 2 val, 2 test), about a minute.
-    "small": Preset("small", (0, 1, 2, 17, 18, 19, 20), (50, 50), 0.8, 1.0),
-    # Benchmark: 21 scenes split like KITTI tracking.
-    "default": Preset("default", tuple(range(21)), (60, 140), 1.0, 1.0),
-}
-
-
-def get_preset(name: str) -> Preset:
-    """The preset called ``name``; a ``ValueError`` lists the valid names otherwise."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; valid presets: {', '.join(PRESETS)}")
-    return PRESETS[name]
 
 
 def _check_seed(seed: int) -> int:
@@ -161,6 +122,9 @@ def world_identity(
     p = get_preset(preset)
     s = get_sensor(sensor)
     seed = _check_seed(seed)
+    preset_config = asdict(p)
+    if p.motion == "v1":
+        del preset_config["motion"]  # the worlds made before motion versions: same manifest
     ident: dict = {
         "generator": "pointtrack.envs.synthetic",
         "generator_version": GENERATOR_VERSION,
@@ -169,7 +133,7 @@ def world_identity(
         "sensor": s.name,
         "seed": seed,
         "config": {
-            "preset": asdict(p),
+            "preset": preset_config,
             "sensor": {k: v for k, v in asdict(s).items() if not k.startswith("_")},
             "frame_rate_hz": 1.0 / DT,
         },
@@ -339,15 +303,20 @@ def scene_frames(preset: Preset, seed: int, scene_id: int) -> int:
     return int(rng.integers(lo, hi + 1))
 
 
-def generated_scenes(preset: Preset, seed: int, sensor: SensorModel) -> Iterator[tuple]:
+def generated_scenes(
+    preset: Preset, seed: int, sensor: SensorModel, motion_params: KittiMotion | None = None
+) -> Iterator[tuple]:
+    """``(scene_id, Scene)`` of every scene of the preset (``motion_params``: see
+    :func:`build_scene`)."""
     for scene_id in preset.scenes:
         cfg = SceneConfig(
             n_frames=scene_frames(preset, seed, scene_id),
             density=preset.density,
             static_density=preset.static_density,
             required=CATEGORIES,
+            motion=preset.motion,
         )
-        yield scene_id, build_scene(scene_id, seed, cfg)
+        yield scene_id, build_scene(scene_id, seed, cfg, motion_params)
 
 
 def _write_scene(
@@ -456,7 +425,8 @@ def generate_world(
         out_dir: final directory. When it already holds a world with the same manifest identity
             it is reused as is; another non-empty directory raises ``FileExistsError`` unless
             ``overwrite``.
-        preset: ``"tiny"``, ``"small"`` or ``"default"`` (see :data:`PRESETS`).
+        preset: ``"tiny"``, ``"small"``, ``"default"`` or their KITTI-motion versions
+            ``"tiny-km"``, ``"small-km"``, ``"default-km"`` (see :mod:`envs.synthetic.presets`).
         sensor: ``"hdl64"`` (KITTI-like) or ``"hdl32"`` (nuScenes-like).
         seed: non-negative integer; the same seed gives byte-identical files.
         labels_dir: a KITTI ``label_02`` + ``calib`` folder: replay its labelled objects (real
