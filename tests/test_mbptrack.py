@@ -126,6 +126,7 @@ def test_shapes_and_finite(mode):
         "box_raw": (3, k, 5),
         "seed_idx": (3, s),
         "Z": (3, s, TINY["feat_dim"]),
+        "motion": (3, 4),
     }
     assert {k: tuple(v.shape) for k, v in out.items()} == shapes
     assert all(torch.isfinite(v.float()).all() for v in out.values())

@@ -259,7 +259,8 @@ class MBPTrack(Tracker):
         M, 5)`` -> ``proposals (B, K, 4)`` ``(x, y, z, yaw)`` (m, rad, search frame), ``scores (B,
         K)`` (logits), ``mask_logits (B, S)``, ``center (B, S, 3)``, ``coarse_logits (B, S)``,
         ``proposal_xyz (B, K, 3)``, ``box_raw (B, K, 5)`` (yaw in degrees), ``seed_idx (B, S)``
-        (into ``search``), ``Z (B, S, D)`` (the localisation features)."""
+        (into ``search``), ``Z (B, S, D)`` (the localisation features), ``motion (B, 4)`` (the
+        batch's last motion: :meth:`best_action`'s fallback)."""
         search, size = batch["search"], batch["size"]
         memory, boxes = batch["memory"], batch["memory_boxes"]
         b, m, n_m = memory.shape[:3]
@@ -298,6 +299,7 @@ class MBPTrack(Tracker):
             "box_raw": raw,
             "seed_idx": idx,
             "Z": loc["feature"],
+            "motion": batch["motion"],
         }
 
     def loss(
@@ -362,19 +364,16 @@ class MBPTrack(Tracker):
         return (batch["search"] == 0).flatten(1).all(1)
 
     def best_action(self, outputs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """The best-scored proposal ``(B, 4)``, its yaw wrapped to ``[-pi, pi)``."""
+        """The best-scored proposal ``(B, 4)``, its yaw wrapped to ``[-pi, pi)``; or the last
+        motion ``outputs["motion"]`` where no seed's target probability reaches
+        ``config.missing_threshold`` (the reference's missing target). Here, not in a
+        ``choose_action`` override, so every caller of ``best_action`` (``act``, the RL policy,
+        ``trackers.decision``) takes the same action."""
         best = super().best_action(outputs)
         yaw = torch.remainder(best[:, 3:] + math.pi, 2 * math.pi) - math.pi
-        return torch.cat([best[:, :3], yaw], dim=1)
-
-    def choose_action(
-        self, batch: Mapping[str, torch.Tensor], outputs: dict[str, torch.Tensor]
-    ) -> torch.Tensor:
-        """:meth:`best_action`, or the last motion ``batch["motion"]`` where no seed's target
-        probability reaches ``config.missing_threshold`` (the reference's missing target)."""
-        best = self.best_action(outputs)
+        best = torch.cat([best[:, :3], yaw], dim=1)
         seen = outputs["mask_logits"].sigmoid().amax(dim=1) >= self.config.missing_threshold
-        return torch.where(seen[:, None], best, batch["motion"].to(best.dtype))
+        return torch.where(seen[:, None], best, outputs["motion"].to(best.dtype))
 
     @property
     def summary_channels(self) -> int:
