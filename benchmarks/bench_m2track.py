@@ -27,12 +27,15 @@ import trackers  # noqa: E402
 from envs.tracking_env import OBSERVATION_KEYS, make_synthetic_env  # noqa: E402
 
 
-def observations(steps: int) -> list[dict[str, np.ndarray]]:
+def observations(
+    steps: int, keys: tuple[str, ...] = ("previous_search",)
+) -> list[dict[str, np.ndarray]]:
+    """``steps`` observations with the opt-in ``keys``, in episode order (zero actions)."""
     env = make_synthetic_env(
         preset="small",
         split="test",
         setting="kitti-1",
-        observation_keys=(*OBSERVATION_KEYS, "previous_search"),
+        observation_keys=(*OBSERVATION_KEYS, *keys),
     )
     obs, _ = env.reset(seed=0)
     out = []

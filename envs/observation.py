@@ -17,6 +17,8 @@ import gymnasium as gym
 import numpy as np
 
 from envs.spec import (
+    DEFAULT_MEMORY_FRAMES,
+    MEMORY_KEYS,
     OBS_SHAPES,
     OPTIONAL_OBS_SHAPES,
     PREVIOUS_SEARCH_CHANNELS,
@@ -245,9 +247,12 @@ def resample(points: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.n
     return out, resample_into([points], [out], rng)[0]
 
 
-def observation_space(keys: Sequence[str]) -> gym.spaces.Dict:
+def observation_space(
+    keys: Sequence[str], memory_frames: int = DEFAULT_MEMORY_FRAMES
+) -> gym.spaces.Dict:
     """The env's observation space for ``keys`` (the default keys plus any opt-in ones, see
-    :data:`envs.spec.OBS_SHAPES`): float32 boxes with finite bounds."""
+    :data:`envs.spec.OBS_SHAPES`; the memory keys with ``memory_frames`` slots): float32 boxes
+    with finite bounds."""
     motion_hi = np.array([MOTION_BOUND_M] * 3 + [np.pi], dtype=np.float32)
     bounds = {
         "template": (-POINT_BOUND_M, POINT_BOUND_M),
@@ -265,7 +270,26 @@ def observation_space(keys: Sequence[str]) -> gym.spaces.Dict:
         space["previous_search"] = gym.spaces.Box(
             np.tile(lo, (shape[0], 1)), np.tile(hi, (shape[0], 1)), shape, np.float32
         )
+    for key, box in _memory_spaces(memory_frames).items():
+        if key in keys:
+            space[key] = box
     return space
+
+
+def _memory_spaces(frames: int) -> dict[str, gym.spaces.Box]:
+    """The spaces of :data:`envs.spec.MEMORY_KEYS` with ``frames`` slots: points and box
+    centres within :data:`POINT_BOUND_M`, masks and valid flags in ``[0, 1]``, yaws in
+    ``[-pi, pi]``."""
+    bound = POINT_BOUND_M
+    lo_p = np.tile(np.array([-bound] * 3 + [0.0], np.float32), (frames, SEARCH_SIZE, 1))
+    hi_p = np.tile(np.array([bound] * 3 + [1.0], np.float32), (frames, SEARCH_SIZE, 1))
+    lo_b = np.tile(np.array([-bound] * 3 + [-np.pi, 0.0], np.float32), (frames, 1))
+    hi_b = np.tile(np.array([bound] * 3 + [np.pi, 1.0], np.float32), (frames, 1))
+    boxes = (
+        gym.spaces.Box(lo_p, hi_p, lo_p.shape, np.float32),
+        gym.spaces.Box(lo_b, hi_b, lo_b.shape, np.float32),
+    )
+    return dict(zip(MEMORY_KEYS, boxes, strict=True))
 
 
 def previous_search_points(

@@ -18,7 +18,12 @@ from typing import Any
 
 __all__ = [
     "DEFAULT_MAX_ACTION",
+    "DEFAULT_MEMORY_FRAMES",
     "DEFAULT_SPLITS",
+    "MAX_MEMORY_FRAMES",
+    "MEMORY_BOX_CHANNELS",
+    "MEMORY_CHANNELS",
+    "MEMORY_KEYS",
     "NUSCENES_MAX_ACTION",
     "OBSERVATION_KEYS",
     "OBS_SHAPES",
@@ -41,6 +46,7 @@ __all__ = [
     "TRACKER_OPTION_KEYS",
     "EnvOptions",
     "check_max_steps",
+    "check_memory_frames",
     "check_observation_keys",
     "check_seed",
     "check_start_frame",
@@ -64,12 +70,27 @@ TEMPLATE_ENLARGEMENT = (TEMPLATE_SCALE, 0.0)
 
 OBSERVATION_KEYS = ("template", "search", "size", "motion")
 """The default observation (always present)."""
-OPTIONAL_OBSERVATION_KEYS = ("previous_search",)
+MEMORY_KEYS = ("memory", "memory_boxes")
+"""The opt-in keys of the env's memory of past frames (:mod:`envs.memory`; memory-network
+trackers such as MBPTrack: Xu et al., "MBPTrack: Improving 3D Point Cloud Tracking with Memory
+Networks and Box Priors", ICCV 2023)."""
+OPTIONAL_OBSERVATION_KEYS = ("previous_search", *MEMORY_KEYS)
 """Opt-in observation keys (``observation_keys=``)."""
 PREVIOUS_SEARCH_CHANNELS = ("x", "y", "z", "time", "mask")
 """Columns of the opt-in ``previous_search`` observation (M2-Track's input layout: Zheng et al.,
 "Beyond 3D Siamese Tracking: A Motion-Centric Paradigm for 3D Single Object Tracking in Point
 Clouds", CVPR 2022): the previous frame's points, their time, their previous-box mask."""
+MEMORY_CHANNELS = ("x", "y", "z", "mask")
+"""Columns of ``memory``: a past frame's search points (in the frame of the box it was cropped
+around) and the target mask of the agent's box for that frame."""
+MEMORY_BOX_CHANNELS = ("x", "y", "z", "yaw", "valid")
+"""Columns of ``memory_boxes``: each memory frame's crop box in the reference box frame (m,
+rad) and whether its slot holds a frame with points."""
+DEFAULT_MEMORY_FRAMES = 3
+"""The memory slots ``M`` by default (``EnvOptions.memory_frames``): MBPTrack's evaluation
+memory in the reference configuration."""
+MAX_MEMORY_FRAMES = 8
+"""The most memory slots (the MBPTrack reference samples 8 frames per training tracklet)."""
 OBS_SHAPES: dict[str, tuple[int, ...]] = {
     "template": (TEMPLATE_SIZE, 3),
     "search": (SEARCH_SIZE, 3),
@@ -79,8 +100,11 @@ OBS_SHAPES: dict[str, tuple[int, ...]] = {
 """Per-sample shapes of the default observation's keys (float32; points in m, box frames)."""
 OPTIONAL_OBS_SHAPES: dict[str, tuple[int, ...]] = {
     "previous_search": (SEARCH_SIZE, len(PREVIOUS_SEARCH_CHANNELS)),
+    "memory": (DEFAULT_MEMORY_FRAMES, SEARCH_SIZE, len(MEMORY_CHANNELS)),
+    "memory_boxes": (DEFAULT_MEMORY_FRAMES, len(MEMORY_BOX_CHANNELS)),
 }
-"""Per-sample shapes of the opt-in keys."""
+"""Per-sample shapes of the opt-in keys; the memory keys' first axis is ``memory_frames``
+(shown at its default)."""
 
 # ---------------------------------------------------------------- modes and bounds
 
@@ -140,6 +164,16 @@ def check_max_steps(value: Any, name: str) -> int | None:
         return None
     if not _is_int(value) or value < 1:
         raise ValueError(f"{name} must be None or an int >= 1; got {value!r}")
+    return int(value)
+
+
+def check_memory_frames(value: Any) -> int:
+    """``memory_frames`` as an int in ``1..MAX_MEMORY_FRAMES`` (``ValueError`` naming it)."""
+    if not _is_int(value) or not 1 <= value <= MAX_MEMORY_FRAMES:
+        raise ValueError(
+            f"memory_frames={value!r}: expected an integer in 1..{MAX_MEMORY_FRAMES} "
+            f"(frames the env keeps in the 'memory' observation)"
+        )
     return int(value)
 
 
@@ -217,6 +251,8 @@ class EnvOptions:
     - ``search_enlargement``: ``(scale, offset_m)`` of the search crop (default ``(1.25, 2.0)``;
       GPT's paper crops ``(1.0, 4.0)``); trackers must be evaluated with the region they were
       trained with. Stored as a tuple of floats.
+    - ``memory_frames``: the slots ``M`` of the opt-in :data:`MEMORY_KEYS` (default
+      :data:`DEFAULT_MEMORY_FRAMES`, at most :data:`MAX_MEMORY_FRAMES`); unused without them.
     """
 
     sampling: str = "sequential"
@@ -235,6 +271,7 @@ class EnvOptions:
     max_steps: int | None = None
     observation_keys: Sequence[str] = OBSERVATION_KEYS
     search_enlargement: Sequence[float] = SEARCH_ENLARGEMENT
+    memory_frames: int = DEFAULT_MEMORY_FRAMES
 
     def __post_init__(self) -> None:
         self.check()
@@ -287,6 +324,7 @@ class EnvOptions:
             "start_frame": check_start_frame(self.start_frame, "start_frame"),
             "max_steps": check_max_steps(self.max_steps, "max_steps"),
             "observation_keys": check_observation_keys(self.observation_keys),
+            "memory_frames": check_memory_frames(self.memory_frames),
             "cell_m": float(self.cell_m),
             "cache_mb": float(self.cache_mb),
         }

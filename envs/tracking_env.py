@@ -24,6 +24,7 @@ from envs.data.toy import make_toy_dataset
 from envs.data.tracklet import Tracklet
 from envs.episodes import EpisodeSchedule
 from envs.geometry import apply_offset_pair, iou_pair, offset_between_pair
+from envs.memory import FrameMemory
 from envs.observation import (
     SEARCH_SIZE,
     TEMPLATE_SIZE,
@@ -45,6 +46,7 @@ from envs.scan_cache import CropCache, ScanTransform, TrackletScans, crop_canoni
 from envs.sources import SOURCE_KEYWORDS, EnvData, open_dataset
 from envs.spec import (
     DEFAULT_SPLITS,
+    MEMORY_KEYS,
     NUSCENES_MAX_ACTION,
     OBSERVATION_KEYS,
     OPTIONAL_OBSERVATION_KEYS,
@@ -110,7 +112,9 @@ class TrackingEnv(gym.Env):
     (Zheng et al., CVPR 2022): ``previous_search (1024, 5)``, the previous frame cropped and
     resampled like the search region around the same reference box, columns ``x, y, z, time,
     mask`` (:func:`envs.observation.previous_search_points`); zeros when the crop is empty
-    (``info["empty_previous_search"]``).
+    (``info["empty_previous_search"]``). Opt-in ``memory (M, 1024, 4)`` and ``memory_boxes (M,
+    5)`` (``M = memory_frames``): the last M frames' search regions as the agent saw them, with
+    the mask of its box for each, and their crop boxes (:mod:`envs.memory`; MBPTrack's input).
 
     Template modes (``template_mode``, see :class:`envs.template.TemplateCrops`):
     ``"first_and_previous"`` (default), ``"first"``, ``"previous"``, ``"all"``,
@@ -161,7 +165,8 @@ class TrackingEnv(gym.Env):
       ``options``'s): ``sampling``, ``template_mode``, ``reference``, ``reward``,
       ``reward_kwargs``, ``max_action``, ``render_mode``, ``scan_transform``, ``corridor_m``,
       ``cell_m``, ``cache_mb``, ``episode_seed``, ``start_frame``, ``max_steps``,
-      ``observation_keys``, ``search_enlargement``, documented and validated there.
+      ``observation_keys``, ``search_enlargement``, ``memory_frames``, documented and validated
+      there.
 
     ## Version History
     An id's version names what an agent observes and earns for given seeds and actions; the
@@ -205,6 +210,8 @@ class TrackingEnv(gym.Env):
         self.reward_kwargs = reward_kwargs
         self.observation_keys = options.observation_keys
         self._previous_search = "previous_search" in self.observation_keys
+        wants_memory = bool(set(MEMORY_KEYS) & set(self.observation_keys))
+        self._memory = FrameMemory(options.memory_frames) if wants_memory else None
         data = EnvData.select(dataset, split=split, setting=setting, categories=categories)
         self.dataset, self.split, self.setting = data.dataset, data.split, data.setting
         self.categories = data.categories
@@ -225,7 +232,7 @@ class TrackingEnv(gym.Env):
         self.action_space = gym.spaces.Box(
             -a_max.astype(np.float32), a_max.astype(np.float32), (4,), np.float32
         )
-        self.observation_space = observation_space(self.observation_keys)
+        self.observation_space = observation_space(self.observation_keys, options.memory_frames)
         self._motion_hi = self.observation_space["motion"].high.astype(np.float64).tolist()
         self._max_action_list = a_max.tolist()
         self._crop_cache = self._new_crop_cache()
@@ -516,6 +523,8 @@ class TrackingEnv(gym.Env):
         self._last_empty: dict[str, bool] = {}
         self._search_crop = np.zeros((0, 3), np.float32)
         self._render_state = None
+        if self._memory is not None:
+            self._memory.clear()
 
     def _start(self, index: int, opts: dict[str, Any]) -> None:
         """Episode state for tracklet ``index`` (no observation: see :meth:`_observation`)."""
@@ -608,6 +617,12 @@ class TrackingEnv(gym.Env):
             )
             obs["previous_search"] = previous_search_points(previous, ref, counts[-1], certain)
             empty["empty_previous_search"] = counts[-1] == 0
+        if self._memory is not None:  # frame t - 1 as the agent saw it, with its box for it
+            if t == start + 1:  # the episode's first frame: a crop around the given box
+                (crop,) = self._crops(self._preds[0], (start,), (self.search_enlargement,))
+                self._memory.add_crop(crop, self._preds[0], self._resample_rng)
+            memory = self._memory.step(self._preds[t - 1 - start], search, n_search, ref)
+            obs.update({k: v for k, v in memory.items() if k in self.observation_keys})
         if t == self._last_frame:
             # the next step terminates and repeats this observation: keep a copy the caller
             # cannot modify (earlier observations are handed over without one)

@@ -119,7 +119,7 @@ def test_registry_errors_name_the_valid_names(xcorr):
 
 
 def test_available_lists_kinds_in_order():
-    assert trackers.available("learned") == ["p2b", "bat", "gpt", "m2track"]
+    assert trackers.available("learned") == ["p2b", "bat", "gpt", "m2track", "mbptrack"]
     assert trackers.available("baseline") == ["previous_box", "constant_velocity"]
     shipped = trackers.available("checkpoint")
     assert trackers.available() == [
@@ -127,6 +127,7 @@ def test_available_lists_kinds_in_order():
         "bat",
         "gpt",
         "m2track",
+        "mbptrack",
         "previous_box",
         "constant_velocity",
         *shipped,

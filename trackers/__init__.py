@@ -21,7 +21,7 @@ from trackers.registry import (
 
 # the built-in trackers register themselves on import, in this order (available()'s)
 # isort: off
-from trackers import p2b, bat, gpt, m2track, baselines  # noqa: E402, F401
+from trackers import p2b, bat, gpt, m2track, mbptrack, baselines  # noqa: E402, F401
 # isort: on
 
 __all__ = [

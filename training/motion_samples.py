@@ -46,7 +46,7 @@ from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE, SEARCH_SIZE, resampl
 from trackers.m2track import box_cloud
 from training.samples import FrameCandidateSamples, crop_near
 
-__all__ = ["BATCH_KEYS", "TARGET_KEYS", "MotionSamples", "augment_frame"]
+__all__ = ["BATCH_KEYS", "TARGET_KEYS", "MotionSamples", "RedrawnSamples", "augment_frame"]
 
 BATCH_KEYS = ("search", "previous_search", "size", "prior_is_gt")
 TARGET_KEYS = ("seg_labels", "box", "prev_box", "motion_box", "moving", "box_cloud")
@@ -113,7 +113,35 @@ def _box4(box: np.ndarray) -> np.ndarray:
     return np.array([box[0], box[1], box[2], box[6]], dtype=np.float32)
 
 
-class MotionSamples(FrameCandidateSamples):
+class RedrawnSamples(FrameCandidateSamples):
+    """Samples that a subclass's ``_build(index, rng, last)`` may refuse (``None``): the index is
+    then replaced by another one drawn from the sample's own generator, at most
+    :data:`MAX_REDRAWS` times (the last attempt must return a sample), so every sample stays
+    deterministic in ``(seed, epoch, index)``."""
+
+    def describe(self, index: int) -> str:
+        k, t, c = self.locate(index)
+        tr = self.tracklets[k]
+        return f"sample {index} (tracklet {tr.tracklet_id} {tr.category}, frame {t}, candidate {c})"
+
+    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
+        rng = np.random.default_rng([self.seed, self.epoch, int(index)])
+        source = int(index)
+        for attempt in range(MAX_REDRAWS + 1):
+            sample = self._build(source, rng, last=attempt == MAX_REDRAWS)
+            if sample is not None:
+                sample["index"] = torch.tensor(int(index), dtype=torch.int64)
+                return sample
+            source = int(rng.integers(len(self)))
+        raise AssertionError("unreachable: the last attempt always returns a sample")
+
+    def _build(
+        self, index: int, rng: np.random.Generator, last: bool
+    ) -> dict[str, torch.Tensor] | None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class MotionSamples(RedrawnSamples):
     """A ``Dataset`` of M2-Track training samples (see the module docstring).
 
     Args:
@@ -142,22 +170,6 @@ class MotionSamples(FrameCandidateSamples):
         self.augment = bool(augment)
         self.search_size = int(search_size)
         self._index_frames(1)
-
-    def describe(self, index: int) -> str:
-        k, t, c = self.locate(index)
-        tr = self.tracklets[k]
-        return f"sample {index} (tracklet {tr.tracklet_id} {tr.category}, frame {t}, candidate {c})"
-
-    def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
-        rng = np.random.default_rng([self.seed, self.epoch, int(index)])
-        source = int(index)
-        for attempt in range(MAX_REDRAWS + 1):
-            sample = self._build(source, rng, last=attempt == MAX_REDRAWS)
-            if sample is not None:
-                sample["index"] = torch.tensor(int(index), dtype=torch.int64)
-                return sample
-            source = int(rng.integers(len(self)))
-        raise AssertionError("unreachable: the last attempt always returns a sample")
 
     def _build(
         self, index: int, rng: np.random.Generator, last: bool

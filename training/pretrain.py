@@ -206,17 +206,28 @@ def default_train_data(cfg: TrainConfig):
     from training.samples import TrackingSamples
 
     tracklets, root = _config_tracklets(cfg, "train")
-    if getattr(trackers.tracker_class(cfg.tracker), "sample_recipe", None) == "motion":
-        from training.motion_samples import MotionSamples
-
+    sample_recipe = getattr(trackers.tracker_class(cfg.tracker), "sample_recipe", None)
+    if sample_recipe in ("memory", "motion"):
         if cfg.size_jitter > 0:
             raise TrainingError(
-                f"size_jitter={cfg.size_jitter}: the motion samples of "
+                f"size_jitter={cfg.size_jitter}: the {sample_recipe} samples of "
                 f"{cfg.tracker} have no object resizing; use 0"
             )
-        data = MotionSamples(
-            tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed
-        )
+        if sample_recipe == "memory":
+            from training.memory_samples import MemorySamples
+
+            data = MemorySamples(
+                tracklets,
+                candidates_per_frame=cfg.candidates_per_frame,
+                seed=cfg.seed,
+                search_enlargement=cfg.search_enlargement(),
+            )
+        else:
+            from training.motion_samples import MotionSamples
+
+            data = MotionSamples(
+                tracklets, candidates_per_frame=cfg.candidates_per_frame, seed=cfg.seed
+            )
         data.root = str(root)
         return data
     recipe = cfg.recipe_values()
