@@ -91,11 +91,10 @@ class TrackingEnv(gym.Env):
     ## Action Space
     ``Box(-max_action, max_action, (4,), float32)``: ``(dx, dy, dz, dyaw)`` in metres and radians
     in the reference box's frame; new box = reference box moved by ``R(yaw_ref) @ (dx, dy, dz)``,
-    ``yaw + dyaw``, with the given box's size. Default ``max_action = (5, 5, 3, pi)``. Wrap in
-    ``gymnasium.wrappers.RescaleAction`` for a ``[-1, 1]`` space. A NaN/inf action raises
-    ``ValueError``; an out-of-range action is clipped and ``info["action_clipped"]`` is set.
-    Actions are used in float64, so the exact ground-truth offset yields the ground-truth box
-    (IoU and centre error within 1e-9 of 1 and 0 are reported as exactly 1 and 0).
+    ``yaw + dyaw``, with the given box's size. Default ``max_action = (5, 5, 3, pi)``. A NaN/inf
+    action raises ``ValueError``; an out-of-range one is clipped (``info["action_clipped"]``).
+    Actions are used in float64: the exact ground-truth offset yields the ground-truth box (IoU
+    and centre error within 1e-9 of 1 and 0 are reported as exactly 1 and 0).
 
     ## Observation Space
     ``Dict`` of float32 arrays (fresh arrays on every call):
@@ -116,14 +115,10 @@ class TrackingEnv(gym.Env):
     5)`` (``M = memory_frames``): the last M frames' search regions as the agent saw them, with
     the mask of its box for each, and their crop boxes (:mod:`envs.memory`; MBPTrack's input).
 
-    Template modes (``template_mode``, see :class:`envs.template.TemplateCrops`):
-    ``"first_and_previous"`` (default), ``"first"``, ``"previous"``, ``"all"``,
-    ``"first_and_previous_merged"``. Point sets are
-    resampled (:func:`envs.observation.resample_into`) with ``self.np_random``, or with a
-    generator seeded by ``(episode_seed, tracklet id)`` at every reset when an episode seed is
-    set; an empty set gives zeros and ``info["empty_template"]`` / ``info["empty_search"]`` say
-    so. Crops are the points ``envs.observation.crop_box_frame`` selects, rows in a canonical
-    order (:func:`envs.scan_cache.crop_canonical`).
+    Template modes: ``template_mode`` of :class:`envs.template.TemplateCrops` (default
+    ``"first_and_previous"``). Point sets are resampled with ``self.np_random``, or with a
+    generator seeded by ``(episode_seed, tracklet id)`` when an episode seed is set; an empty
+    set gives zeros and ``info["empty_template"]`` / ``info["empty_search"]`` say so.
 
     ## Rewards
     ``reward``: a name of :mod:`envs.rewards` (``"iou_3d"``, the default: the oriented 3D IoU of
@@ -161,12 +156,8 @@ class TrackingEnv(gym.Env):
       :meth:`envs.sources.EnvData.select`): a dataset (anything with ``.tracklets``) or a
       KITTI-layout folder, the class-agnostic setting (``observed`` flags follow it), the
       categories (default: the setting's). Tracklets shorter than two frames are skipped.
-    - ``options`` (an :class:`envs.spec.EnvOptions`) and keywords, its fields (which override
-      ``options``'s): ``sampling``, ``template_mode``, ``reference``, ``reward``,
-      ``reward_kwargs``, ``max_action``, ``render_mode``, ``scan_transform``, ``corridor_m``,
-      ``cell_m``, ``cache_mb``, ``episode_seed``, ``start_frame``, ``max_steps``,
-      ``observation_keys``, ``search_enlargement``, ``memory_frames``, documented and validated
-      there.
+    - ``options`` (an :class:`envs.spec.EnvOptions`) and keywords naming its fields (they
+      override ``options``'s; every field is documented and validated there).
 
     ## Version History
     An id's version names what an agent observes and earns for given seeds and actions; the
@@ -214,21 +205,14 @@ class TrackingEnv(gym.Env):
         self._memory = FrameMemory(options.memory_frames) if wants_memory else None
         data = EnvData.select(dataset, split=split, setting=setting, categories=categories)
         self.dataset, self.split, self.setting = data.dataset, data.split, data.setting
-        self.categories = data.categories
-        self.tracklets: list[Tracklet] = data.tracklets
-        self.sampling = options.sampling
-        self.template_mode = options.template_mode
-        self.search_enlargement = options.search_enlargement
-        self.reference = options.reference
-        a_max = np.array(options.max_action, dtype=np.float64)
-        self.max_action = a_max
-        self.render_mode = options.render_mode
-        self.scan_transform = options.scan_transform
-        self.corridor_m = options.corridor_m
-        self.cell_m = options.cell_m
+        self.categories, self.tracklets = data.categories, data.tracklets
+        self.sampling, self.template_mode = options.sampling, options.template_mode
+        self.search_enlargement, self.reference = options.search_enlargement, options.reference
+        self.max_action = a_max = np.array(options.max_action, dtype=np.float64)
+        self.render_mode, self.scan_transform = options.render_mode, options.scan_transform
+        self.corridor_m, self.cell_m = options.corridor_m, options.cell_m
         self.cache_mb = options.cache_mb
         self._schedule = EpisodeSchedule(self.tracklets, options)
-
         self.action_space = gym.spaces.Box(
             -a_max.astype(np.float32), a_max.astype(np.float32), (4,), np.float32
         )

@@ -150,3 +150,47 @@ def test_motion_breakdown_names_a_tracklet_missing_from_the_data():
     report = {"per_tracklet": [{"tracklet": "0007/3", "frames": 5, "success": 1, "precision": 1}]}
     with pytest.raises(KeyError, match="0007/3"):
         script.breakdown(report, {"0001/1": 0.0})
+
+
+def _eval_report(folder: Path, name: str, observed: float, unseen: float) -> None:
+    """A minimal ``pointtrack eval --out`` report: groups with Success and its interval."""
+    folder.mkdir(parents=True)
+    report = {
+        "tracker": name,
+        "observed": {"success": observed, "success_interval": [observed - 1, observed + 1]},
+        "unseen": {"success": unseen, "success_interval": [unseen - 2, unseen + 2]},
+        "per_tracklet": [],
+    }
+    (folder / f"{name}.json").write_text(json.dumps(report))
+    (folder / "not_a_report.json").write_text(json.dumps([1, 2]))
+
+
+def test_table4_reproduces_cells_and_paired_difference(tmp_path, capsys):
+    script = _script("table4")
+    values = {  # (arm, seed): (observed, unseen)
+        ("none", 0): (30.0, 20.0),
+        ("none", 1): (32.0, 22.0),
+        ("none", 2): (34.0, 21.0),
+        ("decorrelation", 0): (31.0, 23.0),
+        ("decorrelation", 1): (33.0, 24.0),
+        ("decorrelation", 2): (35.0, 23.0),
+    }
+    for (arm, seed), (obs, uns) in values.items():
+        _eval_report(tmp_path / "test" / f"p2b-{arm}-s{seed}", "best.pt", obs, uns)
+    assert script.main([str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "| P2B-U seed 1 | 32.0 [31.0, 33.0] | 22.0 [20.0, 24.0] |" in out
+    # -U observed 30/32/34: mean 32.0, sd 2.0; -W unseen 23/24/23: mean 23.3, sd 0.6
+    assert "| P2B-U | 32.0 ± 2.0 | 21.0 ± 1.0 | 38.6 / 32.4 |" in out
+    assert "| P2B-W | 33.0 ± 2.0 | 23.3 ± 0.6 | 41.0 / 34.7 |" in out
+    # unseen differences 3, 2, 2: mean 2.33, sd 0.577, half width 2.920 * 0.577 / sqrt(3) = 0.97
+    assert "observed +1.0 [+1.0, +1.0]" in out
+    assert "unseen +2.3 [+1.4, +3.3]" in out
+    assert "paper +2.4 / +2.3" in out
+
+
+def test_table4_names_a_folder_without_one_report(tmp_path):
+    script = _script("table4")
+    (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)
+    with pytest.raises(SystemExit, match="p2b-none-s0: expected one eval report, found 0"):
+        script.main([str(tmp_path)])

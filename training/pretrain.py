@@ -869,14 +869,10 @@ def check_device(device: str) -> None:
     if not device.startswith("cuda"):
         return
     if not torch.cuda.is_available():
-        raise TrainingError(
-            f"device {device!r}: CUDA is not available on this machine (use --device cpu)"
-        )
-    index = torch.device(device).index
-    if index is not None and index >= torch.cuda.device_count():
-        raise TrainingError(
-            f"device {device!r}: only {torch.cuda.device_count()} CUDA device(s) here"
-        )
+        raise TrainingError(f"device {device!r}: CUDA is not available on this machine")
+    index, count = torch.device(device).index, torch.cuda.device_count()
+    if index is not None and index >= count:
+        raise TrainingError(f"device {device!r}: only {count} CUDA device(s) here")
 
 
 def train(

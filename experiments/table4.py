@@ -1,0 +1,120 @@
+"""Table IV from run reports: per-file Success, mean ± sd over training seeds, paired -W − -U.
+
+Reads the eval reports that ``experiments/table4_pilot.sh`` writes (``ROOT/test/NAME/*.json``,
+one ``pointtrack eval --eval-seeds ... --out`` report per directory) and prints the markdown
+tables of docs/table4.md. Nothing is typed in by hand but the paper's numbers.
+
+    python experiments/table4.py runs/table4-pilot [--arms none decorrelation] [--seeds 0 1 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+#: P2B kitti-1 Success (observed, unseen Car) in the paper's Table IV
+PAPER = {"none": (38.6, 32.4), "decorrelation": (41.0, 34.7), "sam": (31.4, 21.3)}
+ARM_SUFFIX = {"none": "-U", "decorrelation": "-W", "sam": "-S"}
+#: two-sided 90 % Student t quantiles by degrees of freedom
+T90 = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015}
+GROUPS = ("observed", "unseen")
+
+
+def load_report(folder: Path) -> dict[str, Any]:
+    """The one tracker report in ``folder`` (a ``pointtrack eval --out`` directory)."""
+    reports = []
+    for path in sorted(folder.glob("*.json")):
+        data = json.loads(path.read_text())
+        if isinstance(data, dict) and "per_tracklet" in data:
+            reports.append(data)
+    if len(reports) != 1:
+        raise SystemExit(f"{folder}: expected one eval report, found {len(reports)}")
+    return reports[0]
+
+
+def success(report: dict[str, Any], group: str) -> tuple[float, list[float] | None]:
+    """``report``'s Success of ``group`` (percent) and its bootstrap interval, if recorded."""
+    entry = report[group]
+    return float(entry["success"]), entry.get("success_interval")
+
+
+def cell(report: dict[str, Any], group: str) -> str:
+    value, interval = success(report, group)
+    if interval is None:
+        return f"{value:.1f}"
+    return f"{value:.1f} [{interval[0]:.1f}, {interval[1]:.1f}]"
+
+
+def mean_sd(values: list[float]) -> str:
+    sd = statistics.stdev(values) if len(values) > 1 else float("nan")
+    return f"{statistics.fmean(values):.1f} ± {sd:.1f}"
+
+
+def paired(diffs: list[float]) -> str:
+    """Mean of the paired differences and its 90 % t interval over the pairs."""
+    mean = statistics.fmean(diffs)
+    if len(diffs) < 2:
+        return f"{mean:+.1f} (one pair: no interval)"
+    half = T90[len(diffs) - 1] * statistics.stdev(diffs) / math.sqrt(len(diffs))
+    return f"{mean:+.1f} [{mean - half:+.1f}, {mean + half:+.1f}]"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("root", type=Path)
+    parser.add_argument("--arms", nargs="+", default=["none", "decorrelation"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    args = parser.parse_args(argv)
+    test = args.root / "test"
+    reports = {
+        (arm, seed): load_report(test / f"p2b-{arm}-s{seed}")
+        for arm in args.arms
+        for seed in args.seeds
+    }
+    print("| file | observed Success [90 % CI] | unseen (Car) Success [90 % CI] |")
+    print("| --- | --- | --- |")
+    for (arm, seed), rep in reports.items():
+        name = f"P2B{ARM_SUFFIX[arm]} seed {seed}"
+        print(f"| {name} | {cell(rep, 'observed')} | {cell(rep, 'unseen')} |")
+    if (test / "baselines").is_dir():
+        for name, rep in _baseline_rows(test / "baselines"):
+            print(f"| `{name}` | {cell(rep, 'observed')} | {cell(rep, 'unseen')} |")
+    print()
+    print("| arm | observed, mean ± sd | unseen (Car), mean ± sd | paper observed / unseen |")
+    print("| --- | --- | --- | --- |")
+    for arm in args.arms:
+        row = [mean_sd([success(reports[arm, s], g)[0] for s in args.seeds]) for g in GROUPS]
+        paper = "{} / {}".format(*PAPER[arm])
+        print(f"| P2B{ARM_SUFFIX[arm]} | {row[0]} | {row[1]} | {paper} |")
+    print()
+    ref = args.arms[0]
+    for arm in args.arms[1:]:
+        diffs = {
+            g: [success(reports[arm, s], g)[0] - success(reports[ref, s], g)[0] for s in args.seeds]
+            for g in GROUPS
+        }
+        paper = [PAPER[arm][i] - PAPER[ref][i] for i in range(2)]
+        print(
+            f"P2B{ARM_SUFFIX[arm]} minus P2B{ARM_SUFFIX[ref]}, paired by training seed "
+            f"(mean [90 % t interval]): observed {paired(diffs['observed'])}, "
+            f"unseen {paired(diffs['unseen'])}; paper {paper[0]:+.1f} / {paper[1]:+.1f}"
+        )
+    return 0
+
+
+def _baseline_rows(folder: Path) -> list[tuple[str, dict[str, Any]]]:
+    rows = []
+    for path in sorted(folder.glob("*.json")):
+        data = json.loads(path.read_text())
+        if isinstance(data, dict) and "per_tracklet" in data:
+            rows.append((str(data.get("tracker", path.stem)), data))
+    return rows
+
+
+if __name__ == "__main__":
+    sys.exit(main())
