@@ -163,3 +163,34 @@ def test_size_jitter_is_deterministic_and_off_by_default():
 def test_size_jitter_out_of_range_is_an_error(bad):
     with pytest.raises(ValueError, match="size_jitter"):
         TrackingSamples(fake_tracklets(n=1), size_jitter=bad)
+
+
+def test_load_tracklets_refuses_a_world_lacking_an_observed_category():
+    from envs.data import Setting
+    from training.samples import load_tracklets
+
+    # the tiny world has Pedestrians but no Tram: training would silently be another setting
+    setting = Setting("cell", ("Pedestrian", "Tram"), ("Car",))
+    with pytest.raises(ValueError, match=r"no tracklets of observed Tram \(of Pedestrian, Tram\)"):
+        load_tracklets("synthetic", "train", setting=setting, preset="tiny")
+    tracklets, _, _ = load_tracklets("synthetic", "train", setting="kitti-1", preset="tiny")
+    assert {tr.category for tr in tracklets} == {"Pedestrian", "Van", "Cyclist"}
+
+
+@pytest.mark.parametrize(
+    ("dataset", "setting", "supported"),
+    [
+        ("synthetic", "nuscenes-1", "kitti-1, kitti-2"),
+        ("nuscenes", "kitti-2", "nuscenes-1, nuscenes-2"),
+    ],
+)
+def test_a_setting_of_the_other_layout_is_refused_before_any_data(dataset, setting, supported):
+    from training.config import ConfigError, TrainConfig
+    from training.samples import load_tracklets
+
+    with pytest.raises(
+        ValueError, match=f"{setting!r} is not one of a .*; it supports {supported}"
+    ):
+        load_tracklets(dataset, "train", setting=setting, preset="does-not-exist")
+    with pytest.raises(ConfigError, match=f"setting='{setting}'.*supports {supported}"):
+        TrainConfig(dataset=dataset, setting=setting).validate()

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import trackers
+from envs.data.settings import check_setting_layout
 from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
 from trackers.registry import default_env_options
 from training.scalars import parse_formats
@@ -219,6 +220,12 @@ class TrainConfig:
             bad("data_root", "dataset=kitti needs data_root (the KITTI tracking root)")
         if self.setting is None and self.category is None:
             bad("setting", "give a setting (class-agnostic) or a category (class-specific)")
+        elif self.setting is not None and self.dataset in DATASETS:
+            try:
+                layout = "nuscenes" if self.dataset == "nuscenes" else "kitti"
+                check_setting_layout(self.setting, layout)
+            except ValueError as exc:
+                bad("setting", str(exc))
         for key in (
             "epochs",
             "batch_size",

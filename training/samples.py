@@ -401,8 +401,10 @@ def load_tracklets(
     Returns ``(tracklets, categories, root)``; raises ``ValueError`` when none are found.
     """
     from envs.data import KittiTracking, class_specific, get_setting
+    from envs.data.settings import check_setting_layout
 
     st = class_specific(category) if category else get_setting(setting)
+    check_setting_layout(st, "nuscenes" if dataset == "nuscenes" else "kitti")
     cats = st.observed if trained_only else st.categories
     if dataset == "nuscenes":
         from envs.data.nuscenes import SOT_SPLITS, NuScenesTracking
@@ -426,9 +428,10 @@ def load_tracklets(
     if dataset != "nuscenes":
         data = KittiTracking(root, split=split, categories=list(cats))
     tracklets = [tr for tr in data.tracklets if len(tr) >= 2]
-    if not tracklets:
+    missing = sorted(set(st.observed) - {tr.category for tr in tracklets})
+    if missing:  # training on part of a setting's observed categories would be another setting
         raise ValueError(
-            f"setting {st.name!r} has no tracklets of {', '.join(cats)} in the {split} split of "
-            f"{root}"
+            f"setting {st.name!r}: the {split} split of {root} has no tracklets of observed "
+            f"{', '.join(missing)} (of {', '.join(st.observed)})"
         )
     return tracklets, st, root

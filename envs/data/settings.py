@@ -11,7 +11,14 @@ from dataclasses import dataclass
 
 from envs.data.kitti import CATEGORIES
 
-__all__ = ["SETTINGS", "Setting", "class_specific", "get_setting"]
+__all__ = [
+    "LAYOUT_SETTINGS",
+    "SETTINGS",
+    "Setting",
+    "check_setting_layout",
+    "class_specific",
+    "get_setting",
+]
 
 
 @dataclass(frozen=True)
@@ -51,6 +58,26 @@ SETTINGS: dict[str, Setting] = {
     "nuscenes-1": Setting("nuscenes-1", ("Pedestrian", "Truck", "Bicycle"), ("Car",)),
     "nuscenes-2": Setting("nuscenes-2", ("Car", "Truck", "Bicycle"), ("Pedestrian",)),
 }
+
+#: the class-agnostic settings of each dataset layout (Table I of Tian et al.): a KITTI setting
+#: names KITTI's categories (Cyclist), a nuScenes one nuScenes' (Bicycle, Truck)
+LAYOUT_SETTINGS: dict[str, tuple[str, ...]] = {
+    "kitti": ("kitti-1", "kitti-2"),
+    "nuscenes": ("nuscenes-1", "nuscenes-2"),
+}
+
+
+def check_setting_layout(setting: str | Setting, layout: str) -> None:
+    """Refuse a class-agnostic setting of the other layout's table: ``ValueError`` naming the
+    settings a ``layout`` (``"kitti"`` or ``"nuscenes"``) world supports. Class-specific and
+    custom settings pass."""
+    name = setting.name if isinstance(setting, Setting) else str(setting)
+    own = LAYOUT_SETTINGS[layout]
+    if name not in own and any(name in names for names in LAYOUT_SETTINGS.values()):
+        raise ValueError(
+            f"setting {name!r} is not one of a {layout}-layout world's; it supports "
+            f"{', '.join(own)} (and class-specific:<Category>)"
+        )
 
 
 def class_specific(category: str) -> Setting:
