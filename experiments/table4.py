@@ -1,7 +1,7 @@
 """Table IV from run reports: per-file Success, mean ± sd over training seeds, paired -W − -U.
 
-Reads the eval reports that ``experiments/table4_pilot.sh`` writes (``ROOT/test/NAME/*.json``,
-one ``pointtrack eval --eval-seeds ... --out`` report per directory) and prints the markdown
+Reads the eval reports that ``experiments/table4_pilot.sh`` writes (``ROOT/test/NAME/report.json``,
+one ``pointtrack eval --eval-seeds ... --out`` per directory) and prints the markdown
 tables of docs/table4.md. Nothing is typed in by hand but the paper's numbers.
 
     python experiments/table4.py runs/table4-pilot [--setting kitti-1] [--arms none decorrelation]
@@ -28,16 +28,24 @@ T90 = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015}
 GROUPS = ("observed", "unseen")
 
 
+def load_reports(folder: Path) -> dict[str, dict[str, Any]]:
+    """``{tracker: report}`` of ``folder/report.json`` (a ``pointtrack eval --out`` directory)."""
+    path = folder / "report.json"
+    try:
+        reports = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"{path}: cannot read an eval report ({exc})") from None
+    if not isinstance(reports, dict) or not all("per_tracklet" in r for r in reports.values()):
+        raise SystemExit(f"{path}: not a pointtrack eval report")
+    return reports
+
+
 def load_report(folder: Path) -> dict[str, Any]:
-    """The one tracker report in ``folder`` (a ``pointtrack eval --out`` directory)."""
-    reports = []
-    for path in sorted(folder.glob("*.json")):
-        data = json.loads(path.read_text())
-        if isinstance(data, dict) and "per_tracklet" in data:
-            reports.append(data)
+    """The one tracker's report in ``folder``."""
+    reports = load_reports(folder)
     if len(reports) != 1:
-        raise SystemExit(f"{folder}: expected one eval report, found {len(reports)}")
-    return reports[0]
+        raise SystemExit(f"{folder}: expected one tracker's report, found {len(reports)}")
+    return next(iter(reports.values()))
 
 
 def success(report: dict[str, Any], group: str) -> tuple[float, list[float] | None]:
@@ -86,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         name = f"P2B{ARM_SUFFIX[arm]} seed {seed}"
         print(f"| {name} | {cell(rep, 'observed')} | {cell(rep, 'unseen')} |")
     if (test / "baselines").is_dir():
-        for name, rep in _baseline_rows(test / "baselines"):
+        for name, rep in load_reports(test / "baselines").items():
             print(f"| `{name}` | {cell(rep, 'observed')} | {cell(rep, 'unseen')} |")
     print()
     print("| arm | observed, mean ± sd | unseen, mean ± sd | paper observed / unseen |")
@@ -109,15 +117,6 @@ def main(argv: list[str] | None = None) -> int:
             f"unseen {paired(diffs['unseen'])}; paper {paper[0]:+.1f} / {paper[1]:+.1f}"
         )
     return 0
-
-
-def _baseline_rows(folder: Path) -> list[tuple[str, dict[str, Any]]]:
-    rows = []
-    for path in sorted(folder.glob("*.json")):
-        data = json.loads(path.read_text())
-        if isinstance(data, dict) and "per_tracklet" in data:
-            rows.append((str(data.get("tracker", path.stem)), data))
-    return rows
 
 
 if __name__ == "__main__":

@@ -153,7 +153,7 @@ def test_motion_breakdown_names_a_tracklet_missing_from_the_data():
 
 
 def _eval_report(folder: Path, name: str, observed: float, unseen: float) -> None:
-    """A minimal ``pointtrack eval --out`` report: groups with Success and its interval."""
+    """A minimal ``pointtrack eval --out`` report.json: groups with Success and its interval."""
     folder.mkdir(parents=True)
     report = {
         "tracker": name,
@@ -161,8 +161,7 @@ def _eval_report(folder: Path, name: str, observed: float, unseen: float) -> Non
         "unseen": {"success": unseen, "success_interval": [unseen - 2, unseen + 2]},
         "per_tracklet": [],
     }
-    (folder / f"{name}.json").write_text(json.dumps(report))
-    (folder / "not_a_report.json").write_text(json.dumps([1, 2]))
+    (folder / "report.json").write_text(json.dumps({name: report}))
 
 
 def test_table4_reproduces_cells_and_paired_difference(tmp_path, capsys):
@@ -192,5 +191,5 @@ def test_table4_reproduces_cells_and_paired_difference(tmp_path, capsys):
 def test_table4_names_a_folder_without_one_report(tmp_path):
     script = _script("table4")
     (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)
-    with pytest.raises(SystemExit, match="p2b-none-s0: expected one eval report, found 0"):
+    with pytest.raises(SystemExit, match="p2b-none-s0/report.json: cannot read an eval report"):
         script.main([str(tmp_path)])

@@ -17,6 +17,7 @@ import importlib
 import logging
 import sys
 
+from training.argconfig import apply_config
 from training.extras import MissingExtraError
 
 # name -> (module under training.commands, one-line help). Modules are imported only when their
@@ -63,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--traceback", action="store_true", help="show the full traceback of an expected error"
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.command_parsers = {}  # name -> its parser (training.argconfig re-parses with a file)
     for name, (module, help_text) in COMMANDS.items():
         mod = _command_module(module)
         cmd = sub.add_parser(
@@ -73,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
         )
         cmd.set_defaults(_module=module)
         mod.add_arguments(cmd)
+        parser.command_parsers[name] = cmd
     return parser
 
 
@@ -118,10 +121,15 @@ def configure_logging(level: int = logging.INFO) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = parser.parse_args(argv)
     configure_logging()
     prefix = f"pointtrack {args.command}: "
     try:
+        if getattr(args, "config_file", None) or getattr(args, "set_values", None):
+            command_parser = parser.command_parsers[args.command]
+            args = apply_config(command_parser, args, lambda: parser.parse_args(argv))
         return int(_command_module(args._module).run(args) or 0)
     except KeyboardInterrupt:  # Ctrl-C: one line, the shell's status for SIGINT
         print(f"{prefix}interrupted", file=sys.stderr)

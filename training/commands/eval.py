@@ -30,7 +30,10 @@ from envs.tracking_env import TEMPLATE_MODES, make_tracking_env
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Declare this command's flags."""
+    """Declare this command's flags (and ``--config`` / ``--set``, :mod:`training.argconfig`)."""
+    from training.argconfig import add_config_arguments
+
+    add_config_arguments(parser)
     parser.add_argument(
         "--tracker",
         nargs="+",
@@ -399,6 +402,7 @@ def check_out(args: argparse.Namespace) -> None:
     if args.out:
         from pathlib import Path
 
+        from training.argconfig import save_options
         from training.rundir import remove_stale_temps, unwritable_reason
 
         out = Path(args.out)
@@ -411,6 +415,7 @@ def check_out(args: argparse.Namespace) -> None:
                 f"pointtrack eval: --save-boxes cannot write to {out / 'boxes'}: {why}"
             )
         remove_stale_temps(out)  # a killed evaluation's half-written report
+        save_options(args, out)  # how this evaluation was asked for (loadable by --config)
 
 
 def load_trackers(args: argparse.Namespace, plan: EvalPlan | None = None) -> dict[str, Any]:

@@ -14,8 +14,11 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Declare this command's flags."""
+    """Declare this command's flags (and ``--config`` / ``--set``, :mod:`training.argconfig`)."""
+    from training.argconfig import add_config_arguments
     from training.selection import DEFAULT_PARTS
+
+    add_config_arguments(parser)
 
     parser.add_argument(
         "candidates",
@@ -90,6 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from training.argconfig import save_options
     from training.evaluate import save_report
     from training.scalars import DEFAULT_FORMATS, require_formats
     from training.selection import (
@@ -150,7 +154,8 @@ def run(args: argparse.Namespace) -> int:
         }
         path = save_report(summary, out / "selection.json")
         log_ranking(rows, uncertainty, out / "logs", formats)
-        print(f"wrote {path} and {out / 'logs'}")
+        save_options(args, out)
+        print(f"wrote {path}, {out / 'config.yaml'} and {out / 'logs'}")
     if args.save:
         from training.selection import save_selected
 
