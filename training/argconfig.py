@@ -17,7 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_config_arguments", "apply_config", "save_options"]
+__all__ = ["add_config_arguments", "apply_config", "read_yaml_mapping", "save_options"]
 
 # options that say how a command runs, not what it computes: never taken from or saved to a file
 NOT_CONFIGURABLE = frozenset({"config_file", "set_values", "help", "traceback", "command"})
@@ -86,21 +86,21 @@ def _one(action: argparse.Action, value: Any, name: str, where: str) -> Any:
     return value
 
 
-def _read_yaml(path: str) -> dict[str, Any]:
+def read_yaml_mapping(path: str | Path) -> dict[str, Any]:
+    """The YAML mapping in ``path`` (an empty file: ``{}``); ``ValueError`` naming the file when
+    it cannot be read, is not YAML or is not a mapping. The one reader of config files."""
     import yaml
 
     try:
         data = yaml.safe_load(Path(path).read_text())
     except OSError as exc:
-        raise ValueError(f"--config {path}: cannot read ({exc.strerror or exc})") from None
+        raise ValueError(f"{path}: cannot read ({exc.strerror or exc})") from None
     except yaml.YAMLError as exc:
-        raise ValueError(f"--config {path}: not valid YAML ({exc})") from None
+        raise ValueError(f"{path}: not valid YAML ({exc})") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise ValueError(
-            f"--config {path}: expected a mapping of options, got {type(data).__name__}"
-        )
+        raise ValueError(f"{path}: expected a mapping of options, got {type(data).__name__}")
     return data
 
 
@@ -121,7 +121,11 @@ def apply_config(
     actions = _actions(parser)
     if args.config_file:
         values = {}
-        for key, value in _read_yaml(args.config_file).items():
+        try:
+            mapping = read_yaml_mapping(args.config_file)
+        except ValueError as exc:
+            raise ValueError(f"--config {exc}") from None
+        for key, value in mapping.items():
             dest = str(key).replace("-", "_")
             if dest not in actions:
                 valid = ", ".join(sorted(actions))

@@ -18,6 +18,7 @@ import trackers
 from envs.data.settings import check_setting_layout
 from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
 from trackers.registry import default_env_options
+from training.argconfig import read_yaml_mapping
 from training.scalars import parse_formats
 
 __all__ = [
@@ -489,17 +490,11 @@ def config_from_dict(values: dict[str, Any], base: TrainConfig | None = None) ->
 
 def load_config(path: str | Path, base: TrainConfig | None = None) -> TrainConfig:
     """Read a YAML file of config keys (a flat mapping) on top of ``base``."""
-    import yaml
-
     path = Path(path)
     try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"cannot read config file {path}: {exc}") from exc
-    try:
-        values = yaml.safe_load(text) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+        values = read_yaml_mapping(path)
+    except ValueError as exc:
+        raise ConfigError(f"config file {exc}") from None
     try:
         return config_from_dict(values, base)
     except ConfigError as exc:

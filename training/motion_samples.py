@@ -119,11 +119,6 @@ class RedrawnSamples(FrameCandidateSamples):
     :data:`MAX_REDRAWS` times (the last attempt must return a sample), so every sample stays
     deterministic in ``(seed, epoch, index)``."""
 
-    def describe(self, index: int) -> str:
-        k, t, c = self.locate(index)
-        tr = self.tracklets[k]
-        return f"sample {index} (tracklet {tr.tracklet_id} {tr.category}, frame {t}, candidate {c})"
-
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng([self.seed, self.epoch, int(index)])
         source = int(index)

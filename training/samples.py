@@ -160,6 +160,12 @@ class FrameCandidateSamples(Dataset):
         k = int(np.searchsorted(self._starts, item, side="right") - 1)
         return k, item - int(self._starts[k]) + self._first_t, cand
 
+    def describe(self, index: int) -> str:
+        """Where sample ``index`` comes from, for error messages."""
+        k, t, c = self.locate(index)
+        tr = self.tracklets[k]
+        return f"sample {index} (tracklet {tr.tracklet_id} {tr.category}, frame {t}, candidate {c})"
+
 
 class TrackingSamples(FrameCandidateSamples):
     """A ``torch.utils.data.Dataset`` of supervised tracking samples (see the module docstring).
@@ -225,11 +231,6 @@ class TrackingSamples(FrameCandidateSamples):
         self.frame0_samples = bool(frame0_samples)
         self.limit_box = bool(limit_box)
         self._index_frames(0 if frame0_samples else 1)
-
-    def describe(self, index: int) -> str:
-        k, t, c = self.locate(index)
-        tr = self.tracklets[k]
-        return f"sample {index} (tracklet {tr.tracklet_id} {tr.category}, frame {t}, candidate {c})"
 
     def __getitem__(self, index: int) -> dict[str, torch.Tensor]:
         rng = np.random.default_rng([self.seed, self.epoch, int(index)])

@@ -17,9 +17,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 
 from envs.tracking_env import REWARDS
+from training.argconfig import read_yaml_mapping
 from training.config import coerce
 from training.rl.policy import ACTION_MODES, CRITICS, TRAIN_PARTS
 
@@ -247,17 +247,10 @@ def read_hyperparams(path: str | Path) -> dict[str, Any]:
     (the RL Zoo's ``n_timesteps``, ``n_envs`` and ``learning_rate`` read as ``timesteps``,
     ``num_envs`` and ``lr``). :class:`FinetuneError` naming the file when it cannot be read,
     is not a mapping, or names a field twice."""
-    path = Path(path)
     try:
-        values = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise FinetuneError(f"cannot read the config file {path}: {exc}") from None
-    if values is None:
-        return {}
-    if not isinstance(values, dict):
-        raise FinetuneError(
-            f"config file {path}: expected a mapping of config keys, got {type(values).__name__}"
-        )
+        values = read_yaml_mapping(path)
+    except ValueError as exc:
+        raise FinetuneError(f"config file {exc}") from None
     out: dict[str, Any] = {}
     for key, value in values.items():
         name = ZOO_NAMES.get(str(key), str(key))
