@@ -659,8 +659,9 @@ def make_tracking_env(
         source: a named source of :data:`envs.spec.SOURCES` (``"synthetic"``, ``"kitti"``,
             ``"nuscenes"``), read at ``split`` (default :data:`envs.spec.DEFAULT_SPLITS`), or a
             dataset (anything with ``.tracklets``; shared, not copied).
-        setting, categories: the class-agnostic setting and the categories to serve (default:
-            the setting's); a named source reads only these categories.
+        setting: the class-agnostic setting.
+        categories: the categories to serve (default: the setting's); a named source reads only
+            these categories.
         options: the env's :class:`envs.spec.EnvOptions`.
         kwargs: a named source's keywords (:data:`envs.sources.SOURCE_KEYWORDS`: ``root``,
             ``preset``, ``sensor``, ``seed``, ``version``, ``cache_dir``,

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
-# The papers'-width kitti-1 -U run of docs/checkpoints.md ("kitti-1 at the papers' widths on the
-# CPU, across sessions"): the registered -U command (experiments/train_commands.sh) on one core,
-# no deadline; run again, it resumes from OUT/last.pt.
+# The papers'-width kitti-1 -U run of docs/notes/checkpoints-history.md ("kitti-1 at the papers'
+# widths on the CPU, across sessions"): the registered -U command (experiments/train_commands.sh)
+# on one core, no deadline; run again, it resumes from OUT/last.pt.
 #   bash experiments/cpu_kitti1.sh MODEL OUT      # MODEL: p2b | bat | gpt
 set -euo pipefail
 if [ $# -ne 2 ]; then

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# kitti-1 -U and -W runs for P2B, BAT and GPT on the lent GPU machine (docs/checkpoints.md
-# "kitti-1 on the GPU machine", protocol written before any run). One device call:
+# kitti-1 -U and -W runs for P2B, BAT and GPT on the lent GPU machine
+# (docs/notes/checkpoints-history.md "kitti-1 on the GPU machine", protocol written before any
+# run). One device call:
 #   bash experiments/gpu_kitti1.sh train
 # SIZE=default (the papers' widths; default) or slim. The three chains run side by side (4 loader
 # workers each on the machine's 16 cores); a -U run (EPOCHS x 800 samples, default 48, lr x0.2

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Session 20's two calls on the lent GPU machine (NVIDIA H200; docs/checkpoints.md "kitti-2,
-# second attempt", docs/performance.md "GPU"), each one device call:
+# Session 20's two calls on the lent GPU machine (NVIDIA H200;
+# docs/notes/checkpoints-history.md "kitti-2, second attempt", docs/performance.md "GPU"), each
+# one device call:
 #   bash experiments/gpu_kitti2.sh check  # CUDA tests, training throughput, world 0, epoch time
 #   bash experiments/gpu_kitti2.sh train  # the registered kitti-2 P2B runs, checkpoints to $OUT
 # Set-up and the training commands: experiments/gpu_common.sh.

@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
-# Recipe v1 vs v2 pilot (docs/recipe.md, "Pilot"): P2B slim on the synthetic `small` world,
-# kitti-1, seeds 0 and 1, equal samples (100 steps of 16), four runs at a time; then OPE of each
-# run's last.pt on the small world's val split (eval seed 0), the template mode it was trained
-# with. Usage: PYTHONPATH=$PWD nice -n 10 bash experiments/recipe_pilot.sh runs/recipe-pilot
-# A second argument "320" runs the amended pilot (docs/recipe.md): 4 epochs x 10 steps x 8.
+# Recipe v1 vs v2 pilot (docs/notes/recipe-experiments.md, "Pilot"): P2B slim on the synthetic
+# `small` world, kitti-1, seeds 0 and 1, equal samples (100 steps of 16), four runs at a time;
+# then OPE of each run's last.pt on the small world's val split (eval seed 0), the template mode
+# it was trained with. Usage: PYTHONPATH=$PWD nice -n 10 bash experiments/recipe_pilot.sh
+# runs/recipe-pilot. A second argument "320" runs the amended pilot
+# (docs/notes/recipe-experiments.md): 4 epochs x 10 steps x 8.
 set -euo pipefail
 OUT=${1:-runs/recipe-pilot}
 if [ "${2:-1600}" = 320 ]; then

@@ -1,6 +1,6 @@
-# The registered -U / -W training commands (docs/checkpoints.md), sourced by the experiments
-# scripts after their set-up: DEVICE (cpu | cuda) must be set; SMOKE=1 cuts every run to a few
-# steps. A SECONDS argument of 0 means no deadline (coreutils' timeout).
+# The registered -U / -W training commands (docs/notes/checkpoints-history.md), sourced by the
+# experiments scripts after their set-up: DEVICE (cpu | cuda) must be set; SMOKE=1 cuts every run
+# to a few steps. A SECONDS argument of 0 means no deadline (coreutils' timeout).
 DEVICE=${DEVICE:?set DEVICE (cpu or cuda) before sourcing experiments/train_commands.sh}
 if [ "${SMOKE:-0}" = 1 ]; then
   SMOKE_FLAGS=(--epochs 1 --iters-per-epoch 2 --val-max-tracklets 2 --val-max-frames 5)

@@ -1,4 +1,5 @@
-"""P2B, BAT, GPT: the forward/loss/act contract, exact speed tricks, determinism, bad input."""
+"""The matching trackers (P2B, BAT, GPT: every registered MatchingTracker): the forward / loss / act
+contract, exact speed tricks, determinism, bad input."""
 
 from __future__ import annotations
 
@@ -11,18 +12,25 @@ import torch
 import trackers
 from trackers import ops
 from trackers.backbone import SetAbstraction
-from trackers.base import DEFAULT_MAX_ACTION, prepare_observation
+from trackers.base import DEFAULT_MAX_ACTION, MatchingTracker, prepare_observation
 from trackers.gpt import GraphFusion
 from trackers.p2b import P2BFusion
 from trackers.toy import toy_batch
 
-NAMES = ["p2b", "bat", "gpt"]
+# every registered matching tracker (P2B, BAT, GPT; one registered later is covered too): the
+# tests parametrised by NAMES check the matching contract (seeds, votes, proposals, scores)
+NAMES = [
+    n
+    for n in trackers.available("learned")
+    if issubclass(trackers.tracker_class(n), MatchingTracker)
+]
 # the same code paths with narrow layers (fast tests); the contract tests use the full models
 TINY = {
     "backbone": {"channels": [[16, 16, 32], [32, 32, 64], [64, 64, 64]], "out_channels": 64},
     "head": {"vote_channels": 64},
     "out_channels": 64,
 }
+# each fusion's own narrow widths; a matching tracker not listed keeps its fusion's defaults
 EXTRA = {
     "p2b": {"hidden_channels": 64},
     "bat": {"hidden_channels": 64},
@@ -31,10 +39,34 @@ EXTRA = {
 
 
 def tiny(name, **kw):
-    return trackers.make(name, **{**TINY, **EXTRA[name], **kw})
+    return trackers.make(name, **{**TINY, **EXTRA.get(name, {}), **kw})
+
+
+def shipped_tracker(checkpoint: str) -> str:
+    """The tracker name a shipped checkpoint records (read from its metadata, not its weights)."""
+    from safetensors import safe_open
+
+    path = trackers.registry.find_checkpoint(checkpoint)
+    if path.suffix != ".safetensors":
+        return torch.load(path, weights_only=True)["tracker"]
+    with safe_open(str(path), framework="pt") as f:
+        return f.metadata()["tracker"]
+
+
+# every shipped checkpoint of a matching tracker
+SHIPPED = [c for c in trackers.available("checkpoint") if shipped_tracker(c) in NAMES]
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def test_the_lists_come_from_the_registry():
+    """NAMES and SHIPPED are read from the registry and the shipped files: they hold at least
+    the trackers and files these tests were written for, and no non-matching tracker."""
+    assert {"p2b", "bat", "gpt"} <= set(NAMES)
+    assert "m2track" not in NAMES and "previous_box" not in NAMES
+    assert {f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"} <= set(SHIPPED)
+    assert not any(c.startswith("m2track") for c in SHIPPED)
 
 
 @pytest.fixture(scope="module")
@@ -519,7 +551,7 @@ def test_eval_fast_paths_equal_the_plain_path_random_init(name, toy):
         assert_outputs_close(out, reference_outputs(model, batch))
 
 
-@pytest.mark.parametrize("checkpoint", [f"{n}-kitti1-{w}" for n in NAMES for w in "uw"])
+@pytest.mark.parametrize("checkpoint", SHIPPED)
 def test_eval_fast_paths_equal_the_plain_path_shipped_checkpoints(checkpoint, toy):
     """Fast vs plain on the shipped checkpoints. A heavily padded template (12 distinct points)
     gives GPT many template nodes at nearly equal feature distances, so its k-NN graph flips
@@ -527,8 +559,6 @@ def test_eval_fast_paths_equal_the_plain_path_shipped_checkpoints(checkpoint, to
     backbone seeds are compared, the rest of its outputs only on the dense row."""
     import copy
 
-    if checkpoint not in trackers.available():
-        pytest.skip(f"{checkpoint} is not shipped")
     model = trackers.load(checkpoint).eval()
     plain = copy.deepcopy(model)
     plain.fast_eval = False
@@ -542,7 +572,7 @@ def test_eval_fast_paths_equal_the_plain_path_shipped_checkpoints(checkpoint, to
         for (xyz, feat, idx), (ref_xyz, ref_feat, ref_idx) in zip(seeds, ref_seeds, strict=True):
             assert torch.equal(xyz, ref_xyz) and torch.equal(idx, ref_idx)
             torch.testing.assert_close(feat, ref_feat, rtol=0, atol=1e-4)
-        rows = slice(1, 2) if padded and checkpoint.startswith("gpt") else slice(None)
+        rows = slice(1, 2) if padded and shipped_tracker(checkpoint) == "gpt" else slice(None)
         assert_outputs_close(
             {k: v[rows] for k, v in out.items()}, {k: v[rows] for k, v in ref.items()}
         )

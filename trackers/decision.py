@@ -8,12 +8,12 @@ decided here, by settings that act at inference only and are no part of the arch
   reference box (action 0) where the current points inside it (scaled 1.25) lie within
   ``hold_chamfer_m`` metres (symmetric Chamfer distance) of both template crops: the target
   has not moved against the sensor. Not in the papers: the matching head alone lets a parked
-  car's box slide along it (docs/checkpoints.md, "Holding still targets");
+  car's box slide along it (docs/notes/checkpoints-history.md, "Holding still targets");
 * the **re-ranking** (``rerank_top_k = K > 0``, :func:`choose_action`): of the reference box and
   the ``K`` best-scored proposals, the box whose crop lies nearest (symmetric Chamfer distance)
   to the first frame's crop, a proposal counting ``rerank_margin_m`` farther than it is: the
   network moves the box only where the move matches the target better. Not in the papers
-  either (docs/checkpoints.md, "Re-ranking by the first crop");
+  either (docs/notes/checkpoints-history.md, "Re-ranking by the first crop");
 * the **clip** to ``max_action`` (:func:`clip_action`).
 
 :func:`decide` is the one place these run, in this order: ``Tracker.act`` and the RL policy

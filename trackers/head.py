@@ -53,7 +53,8 @@ class HeadConfig:
     negative_radius: float = 0.6
     # > 0: the radii grow to f (positive) and 2 f (negative) times half the box's xy diagonal
     # where that is larger (a size-relative label; 0 = the papers' fixed radii). f = 0.2 cost
-    # slim BAT 24 Van Success from scratch (docs/checkpoints.md): kept to reproduce that
+    # slim BAT 24 Van Success from scratch (docs/notes/checkpoints-history.md): kept to
+    # reproduce that
     positive_fraction: float = 0.0
     objectness_pos_weight: float = 2.0
 

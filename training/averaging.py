@@ -4,8 +4,9 @@ With the small batches of CPU training the weights after any one step are noisy:
 of one run moves by about 5 points between neighbouring epochs. Averaging the weights along the
 trajectory is meant to smooth that out, and weight averages tend to sit in flatter minima that
 generalise better to shifted test distributions (SWA, Izmailov et al., UAI 2018; SWAD, Cha et
-al., NeurIPS 2021, for domain generalisation). Measured here once (docs/checkpoints.md): on one
-BAT-U run the average did not beat the raw final weights. The trainer validates, keeps and
+al., NeurIPS 2021, for domain generalisation). Measured here once
+(docs/notes/checkpoints-history.md): on one BAT-U run the average did not beat the raw final
+weights. The trainer validates, keeps and
 exports the averaged weights; the optimiser keeps stepping the raw ones.
 
 Every floating-point entry of the state dict (parameters and BatchNorm running statistics) is

@@ -134,7 +134,8 @@ class TrainConfig:
     size_jitter: float = 0.0
     # the training recipe (v1 | v2, see RECIPES and docs/recipe.md) and its items, each
     # overridable on its own (null = the recipe's value). v1 stays the default until the
-    # ablation of docs/recipe.md has run: v2's pilot runs did not yet train (docs/recipe.md)
+    # ablation of docs/recipe.md has run: v2's pilot runs did not yet train
+    # (docs/notes/recipe-experiments.md)
     recipe: str = "v1"
     zero_offset_candidate: bool | None = None  # candidate 0 of every frame: unperturbed search
     min_crop_points: int | None = None  # redraw samples whose template or search crop has fewer

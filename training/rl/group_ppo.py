@@ -86,9 +86,9 @@ class GroupPPO(PPO):
     with the usual ``target_kl`` early stop and gradient clipping; no critic, no value loss.
 
     Why: with a small exploration noise a state's reward differs between the sampled actions
-    far less than between states (docs/rl.md: the learned critic explained ~0 of it), and one
-    sample per state leaves the self-critical baseline (:class:`SelfCriticalReward`) one
-    difference per forward. ``K`` samples cost ``K`` box IoUs and no extra tracker forward, so
+    far less than between states (docs/notes/rl-runs.md: the learned critic explained ~0 of
+    it), and one sample per state leaves the self-critical baseline (:class:`SelfCriticalReward`)
+    one difference per forward. ``K`` samples cost ``K`` box IoUs and no extra tracker forward, so
     each forward yields ``K`` advantages. The objective is each frame's expected reward at the
     states the tracker visits (``gamma`` is not used; nor are the critic and ``gae_lambda``).
 

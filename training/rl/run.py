@@ -577,7 +577,7 @@ def load_result(out: str | Path) -> Any:
 def val_check(cfg: FinetuneConfig, base: Any, tuned: Any, out: Path) -> dict[str, Any]:
     """Base and fine-tuned tracker on the first ``val_max_tracklets`` observed-category val
     tracklets, eval seed 0 (a quick check only: too few tracklets to tell a gain from noise;
-    the protocol in docs/rl.md is what measures one); each with its ``env_options``."""
+    the protocol in docs/notes/rl-runs.md is what measures one); each with its ``env_options``."""
     setting = _setting(cfg)
     data = KittiTracking(_root(cfg), "val", list(setting.observed))
     result: dict[str, Any] = {}
