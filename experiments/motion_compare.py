@@ -27,6 +27,11 @@ def label_files(root: Path, scenes: range | None) -> list[Path]:
     return [f for f in files if scenes is None or int(f.stem) in scenes]
 
 
+def _relative(value: float) -> str:
+    """A relative difference as a percentage; "n/a" where the real value is 0 (no ratio)."""
+    return f"{'n/a':>7}" if np.isnan(value) else f"{value:>7.0%}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--real", type=Path, required=True, help="KITTI root (label_02/)")
@@ -48,8 +53,8 @@ def main() -> None:
             continue
         print(
             f"{row['category']:<11}{row['measure']:<19}{row['real_median']:>9.3f}"
-            f"{row['gen_median']:>9.3f}{row['rel_median']:>7.0%}{row['real_p90']:>9.3f}"
-            f"{row['gen_p90']:>9.3f}{row['rel_p90']:>7.0%}{row['w1']:>8.3f}"
+            f"{row['gen_median']:>9.3f}{_relative(row['rel_median'])}{row['real_p90']:>9.3f}"
+            f"{row['gen_p90']:>9.3f}{_relative(row['rel_p90'])}{row['w1']:>8.3f}"
         )
     if args.plot:
         import matplotlib
