@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from test_mbptrack import TINY
 from test_pretrain_support import fake_tracklets
 
 import trackers
@@ -27,16 +28,6 @@ from training.samples import split_batch
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
-TINY = {
-    "edge_channels": [[8, 8], [16, 16], [16, 16]],
-    "neighbours": 8,
-    "feat_dim": 16,
-    "ffn_channels": 16,
-    "proposals": 8,
-    "aggr_neighbours": 4,
-    "dropout": 0.0,
-    "memory_frames": 2,
-}
 ALWAYS = DomainRandomization(p_skip=0.0, p_step=1.0, max_noise_ratio=0.3, jitter_m=0.0)
 
 
@@ -131,14 +122,15 @@ def test_tap_reads_the_dgcnn_backbone_and_applies_the_ffn_once():
     assert drct.ffn.fc1.in_features == TINY["feat_dim"]
     torch.nn.init.normal_(drct.ffn.fc2.weight, std=0.1)  # a non-identity FFN
     batch, _ = memory_batch()
-    model.train()
-    drct.aux.train()
-    model.generator.manual_seed(3)
-    with tap_backbone(model) as p, torch.no_grad():
-        model(batch)
-    drct.aux.generator.manual_seed(3)
-    with tap_backbone(drct.aux, drct.ffn) as a, torch.no_grad():
-        drct.aux(batch)
+
+    def records(net, transform=None):  # a training forward with the same sampling orders
+        net.train()
+        net.generator.manual_seed(3)
+        with tap_backbone(net, transform) as tapped, torch.no_grad():
+            net(batch)
+        return tapped
+
+    p, a = records(model), records(drct.aux, drct.ffn)
     assert [x.shape[0] for x, _ in p] == [4, 8]  # the search regions, then 4 x 2 memory frames
     for (px, pf), (ax, af) in zip(p, a, strict=True):
         torch.testing.assert_close(px, ax)
