@@ -195,6 +195,11 @@ class MBPTrack(Tracker):
     observation_keys: ClassVar[tuple[str, ...]] = ("memory", "memory_boxes")
     point_keys: ClassVar[tuple[str, ...]] = ("search",)
     train_parts: ClassVar[dict[str, tuple[str, ...]]] = {"head": ("loc",)}
+    #: DRCT's backbone tap (:func:`training.drct.tap_backbone`): the point backbone's attribute
+    #: and its method that encodes one batch of clouds ``(F, N, 3)`` -> ``(xyz (F, S, 3),
+    #: features (F, S, D))``; the search region (``F = B``), then the memory frames (``F = B M``,
+    #: each sample's ``M`` frames consecutive) in training
+    drct_backbone: ClassVar[tuple[str, str]] = ("backbone", "forward")
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__(config, **overrides)
@@ -260,7 +265,8 @@ class MBPTrack(Tracker):
         K)`` (logits), ``mask_logits (B, S)``, ``center (B, S, 3)``, ``coarse_logits (B, S)``,
         ``proposal_xyz (B, K, 3)``, ``box_raw (B, K, 5)`` (yaw in degrees), ``seed_idx (B, S)``
         (into ``search``), ``Z (B, S, D)`` (the localisation features), ``motion (B, 4)`` (the
-        batch's last motion: :meth:`best_action`'s fallback)."""
+        batch's last motion: :meth:`best_action`'s fallback; only where the batch has one: the
+        training samples of :mod:`training.memory_samples` carry none)."""
         search, size = batch["search"], batch["size"]
         memory, boxes = batch["memory"], batch["memory_boxes"]
         b, m, n_m = memory.shape[:3]
@@ -289,7 +295,7 @@ class MBPTrack(Tracker):
         loc = self.loc(xyz, x, mask_x, size)
         raw = loc["boxes"]
         proposals = torch.cat([raw[..., :3], torch.deg2rad(raw[..., 3:4])], dim=-1)
-        return {
+        out = {
             "proposals": proposals,
             "scores": raw[..., 4],
             "mask_logits": loc["mask_logits"],
@@ -299,8 +305,10 @@ class MBPTrack(Tracker):
             "box_raw": raw,
             "seed_idx": idx,
             "Z": loc["feature"],
-            "motion": batch["motion"],
         }
+        if "motion" in batch:
+            out["motion"] = batch["motion"]
+        return out
 
     def loss(
         self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]

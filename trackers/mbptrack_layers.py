@@ -81,6 +81,11 @@ class DGCNNBackbone(nn.Module):
         self.ratios = [int(r) for r in ratios]
         self.fc = nn.Linear(channels[-1][-1], out_channels)
 
+    @property
+    def out_channels(self) -> int:
+        """The seed feature width ``D``."""
+        return self.fc.out_features
+
     def forward(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         n = xyz.shape[1]
         feat = None

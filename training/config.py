@@ -289,15 +289,14 @@ class TrainConfig:
             bad("adam_eps", "must be > 0 or null")
         if self.drct_variant not in DRCT_VARIANTS:
             bad("drct_variant", f"must be one of {', '.join(DRCT_VARIANTS)}")
-        if (
-            self.drct
-            and self.tracker in learned
-            and not hasattr(trackers.tracker_class(self.tracker), "build_fusion")
-        ):
-            bad(
-                "drct",
-                f"needs a matching tracker (backbone -> fusion -> head), not {self.tracker!r}",
-            )
+        if self.tracker in learned and not _drct_trainable(trackers.tracker_class(self.tracker)):
+            for key in ("drct", "domain_randomize"):
+                if getattr(self, key):
+                    bad(
+                        key,
+                        "needs a matching tracker (backbone -> fusion -> head) or mbptrack, "
+                        f"not {self.tracker!r}",
+                    )
         if (
             (self.drct or self.domain_randomize)
             and self.recipe in RECIPES
@@ -370,6 +369,14 @@ class TrainConfig:
             backbone.setdefault("sampling", "fps")
             kwargs["backbone"] = backbone
         return kwargs
+
+
+def _drct_trainable(tracker_class: type) -> bool:
+    """DRCT and -RD (:mod:`training.drct`) can train this tracker class: a matching tracker
+    (``build_fusion``) or one that names its point backbone for DRCT (``drct_backbone``:
+    MBPTrack). M2-Track is neither: its motion samples have no cloud-per-label layout that
+    ``randomize_batch`` reads."""
+    return hasattr(tracker_class, "build_fusion") or hasattr(tracker_class, "drct_backbone")
 
 
 def _same_option(a: Any, b: Any) -> bool:

@@ -1,14 +1,17 @@
 """DRCT: dual-branch training with domain randomisation and local geometric contrast, after Zhao,
 Liu, Tian and Han, *Robust Single Object Tracking in LiDAR Point Clouds under Adverse Weather
-Conditions* (Sec. V) — our own implementation for P2B, BAT and GPT.
+Conditions* (Sec. V) — our own implementation for P2B, BAT, GPT and MBPTrack (the paper builds
+DRCT on MBPTrack).
 
 * **Primary branch**: the tracker being trained, on the clean sample. It is the only branch kept:
   checkpoints' ``model`` and every export hold its weights alone.
 * **Auxiliary branch**: sees the domain-randomised sample (Algorithm 1,
-  :func:`envs.weather.domain_randomize`: noise points, dropped points, jitter; applied to the
-  template's two halves and to the search region separately, per sample, and resampled back to
-  the fixed sizes; labels follow their points, added noise points are background). It runs the
-  whole tracker (backbone -> fusion -> head) and is trained by the tracking loss on that sample.
+  :func:`envs.weather.domain_randomize`: noise points, dropped points, jitter; applied to each
+  cloud the tracker reads separately, per sample, and resampled back to the fixed sizes: the
+  template's two halves and the search region, or MBPTrack's search region and memory frames;
+  labels and memory masks follow their points, added noise points are background;
+  :func:`randomize_batch`). It runs the whole tracker (backbone -> fusion -> head, or MBPTrack's
+  backbone -> memory transformer -> BPLocNet) and is trained by the tracking loss on that sample.
 
   - ``variant="asymmetric"`` (DRCT): a copy of the primary tracker at the start of training, with
     an extra feed-forward network (FFN) after its backbone.
@@ -22,7 +25,8 @@ Conditions* (Sec. V) — our own implementation for P2B, BAT and GPT.
   max pool of the primary seed features over the ``neighbours`` nearest primary seeds of ``C_i``
   (the paper's text: "K nearest neighbor features centered on C"). The loss is
   ``mean_i ||F~aux_i - F~_i||`` (Euclidean norm, not squared, Eq. 5), per sample, averaged over
-  the template and the search region. The auxiliary side is detached by default
+  the template and the search region (MBPTrack: the search region and the mean over the memory
+  frames that hold points; :func:`sample_contrast`). The auxiliary side is detached by default
   (``detach_aux``): knowledge flows from the auxiliary branch to the primary one.
 * **Objective** per sample: ``L_track(primary) + aux_weight * L_track(aux) +
   contrast_weight * L_contrast``; both branches train jointly (one optimizer). The per-sample
@@ -32,12 +36,14 @@ The paper leaves the loss weight, the neighbourhood size, the FFN and the random
 amounts open; our choices (config fields of :class:`training.config.TrainConfig`, documented in
 docs/weather.md) are the defaults of :class:`DRCTConfig`.
 
-The backbone features are read through the tracker's ``backbone`` attribute (a
-:class:`trackers.backbone.Backbone`): for the duration of one forward, :func:`tap_backbone`
-wraps that instance's public ``forward_many`` (which ``Backbone.forward`` delegates to), records
-its ``(xyz, features)`` per cloud and, on the auxiliary branch, applies the FFN to the features
-it returns. Nothing is changed on the module outside that window, so state dicts and exports are
-untouched.
+The backbone features are read through the tracker's point backbone (:func:`point_backbone`:
+a tracker names it and the method that encodes clouds in ``drct_backbone``, as MBPTrack does
+with its DGCNN backbone's ``forward``; by default a :class:`trackers.backbone.Backbone` at
+``tracker.backbone``, tapped at its public ``forward_many``, which ``Backbone.forward`` delegates
+to): for the duration of one forward, :func:`tap_backbone` wraps that instance's method, records
+its ``(xyz, features)`` per batch of clouds and, on the auxiliary branch, applies the FFN to the
+features it returns. Nothing is changed on the module outside that window, so state dicts and
+exports are untouched.
 """
 
 from __future__ import annotations
@@ -62,7 +68,9 @@ __all__ = [
     "DomainRandomizedTraining",
     "FeedForward",
     "local_geometric_contrast",
+    "point_backbone",
     "randomize_batch",
+    "sample_contrast",
     "tap_backbone",
 ]
 
@@ -128,54 +136,74 @@ def _randomize_cloud(
     return src[pick], out[pick]
 
 
+def _follow(values: np.ndarray, src: np.ndarray) -> np.ndarray:
+    """Per-point ``values (N,)`` carried to the randomised points with source ``src (N',)``
+    (:func:`_randomize_cloud`): an added noise point (``-1``) gets 0 (background)."""
+    return np.where(src >= 0, values[np.maximum(src, 0)], 0.0).astype(values.dtype)
+
+
+def _numpy(t: torch.Tensor | None) -> np.ndarray | None:
+    return None if t is None else t.detach().cpu().numpy()
+
+
 def randomize_batch(
     batch: Mapping[str, torch.Tensor],
     targets: Mapping[str, torch.Tensor],
     rng: np.random.Generator,
     dr: DomainRandomization,
 ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-    """Domain-randomised copies of a training batch and its targets.
+    """Domain-randomised copies of a training batch and its targets, per sample and per cloud.
 
-    ``batch["template"] (B, 512, 3)`` (two halves: the first and the previous frame's crop, each
-    in its own box frame) and ``batch["search"] (B, 1024, 3)`` are randomised per sample and
-    per cloud; ``search_labels``, ``template_labels`` and ``template_centers`` follow their points
-    (a noise point is background; a half's centre is shared by its points). ``size``,
-    ``motion`` and ``search_box`` are unchanged. One Python step per (sample, cloud), numpy
-    inside."""
-    device = batch["template"].device
-    template = batch["template"].detach().cpu().numpy()
-    search = batch["search"].detach().cpu().numpy()
-    half = template.shape[1] // 2
-    out_t, out_s = np.empty_like(template), np.empty_like(search)
-    t_labels = targets.get("template_labels")
-    t_centres = targets.get("template_centers")
-    s_labels = targets["search_labels"].detach().cpu().numpy()
-    tl = None if t_labels is None else t_labels.detach().cpu().numpy()
-    tc = None if t_centres is None else t_centres.detach().cpu().numpy()
+    * ``search (B, N, 3)`` (every layout): ``search_labels (B, N)`` follow their points (a noise
+      point is background);
+    * ``template (B, 512, 3)`` (matching trackers: two halves, the first and the previous
+      frame's crop, each in its own box frame): each half separately; ``template_labels`` and
+      ``template_centers`` follow their points (a half's centre is shared by its points);
+    * ``memory (B, M, N_m, 4)`` (MBPTrack, :mod:`training.memory_samples`): each slot's points
+      ``[..., :3]`` separately, its target-mask column ``[..., 3]`` follows them (a noise point is
+      background); an empty slot (all zeros) stays empty. ``memory_boxes`` are unchanged: they
+      are the agent's boxes, which weather does not move.
+
+    ``size``, ``motion``, ``search_box`` and ``box`` are unchanged. Draws per sample: the
+    template's halves, the search region, the memory slots oldest first (a matching tracker's
+    stream is the one it had before memory batches were supported). One Python step per
+    (sample, cloud), numpy inside."""
+    device = batch["search"].device
+    search = _numpy(batch["search"])
+    template, memory = _numpy(batch.get("template")), _numpy(batch.get("memory"))
+    s_labels = _numpy(targets["search_labels"])
+    tl, tc = _numpy(targets.get("template_labels")), _numpy(targets.get("template_centers"))
+    out_s, new_sl = np.empty_like(search), np.empty_like(s_labels)
+    out_t = None if template is None else np.empty_like(template)
+    out_m = None if memory is None else np.empty_like(memory)
     new_tl = None if tl is None else np.empty_like(tl)
     new_tc = None if tc is None else np.empty_like(tc)
-    new_sl = np.empty_like(s_labels)
-    for b in range(template.shape[0]):
-        for lo, hi in ((0, half), (half, template.shape[1])):
-            src, pts = _randomize_cloud(template[b, lo:hi], rng, dr)
-            out_t[b, lo:hi] = pts
-            real = src >= 0
-            if new_tl is not None:
-                new_tl[b, lo:hi] = np.where(real, tl[b, lo:hi][np.maximum(src, 0)], 0.0)
-            if new_tc is not None:  # every point of a half has that half's centre
-                new_tc[b, lo:hi] = tc[b, lo]
-        src, pts = _randomize_cloud(search[b], rng, dr)
-        out_s[b] = pts
-        new_sl[b] = np.where(src >= 0, s_labels[b][np.maximum(src, 0)], 0.0)
-    new_batch = dict(batch)
-    new_batch["template"] = torch.from_numpy(out_t).to(device)
+    for b in range(search.shape[0]):
+        if template is not None:
+            half = template.shape[1] // 2
+            for lo, hi in ((0, half), (half, template.shape[1])):
+                src, pts = _randomize_cloud(template[b, lo:hi], rng, dr)
+                out_t[b, lo:hi] = pts
+                if new_tl is not None:
+                    new_tl[b, lo:hi] = _follow(tl[b, lo:hi], src)
+                if new_tc is not None:  # every point of a half has that half's centre
+                    new_tc[b, lo:hi] = tc[b, lo]
+        src, out_s[b] = _randomize_cloud(search[b], rng, dr)
+        new_sl[b] = _follow(s_labels[b], src)
+        for j in range(0 if memory is None else memory.shape[1]):
+            src, out_m[b, j, :, :3] = _randomize_cloud(memory[b, j, :, :3], rng, dr)
+            out_m[b, j, :, 3] = _follow(memory[b, j, :, 3], src)
+    new_batch, new_targets = dict(batch), dict(targets)
     new_batch["search"] = torch.from_numpy(out_s).to(device)
-    new_targets = dict(targets)
     new_targets["search_labels"] = torch.from_numpy(new_sl).to(device)
-    if new_tl is not None:
-        new_targets["template_labels"] = torch.from_numpy(new_tl).to(device)
-    if new_tc is not None:
-        new_targets["template_centers"] = torch.from_numpy(new_tc).to(device)
+    for store, key, value in (
+        (new_batch, "template", out_t),
+        (new_batch, "memory", out_m),
+        (new_targets, "template_labels", new_tl),
+        (new_targets, "template_centers", new_tc),
+    ):
+        if value is not None:
+            store[key] = torch.from_numpy(value).to(device)
     return new_batch, new_targets
 
 
@@ -229,42 +257,92 @@ class FeedForward(nn.Module):
 def tap_backbone(
     tracker: nn.Module, transform: Callable[[torch.Tensor], torch.Tensor] | None = None
 ) -> Iterator[list[tuple[torch.Tensor, torch.Tensor]]]:
-    """Record ``(xyz (B, M, 3), features (B, M, D))`` of every cloud that ``tracker.backbone``
-    encodes inside the block (template first, then search, for the trackers here), applying
+    """Record ``(xyz (F, M, 3), features (F, M, D))`` of every batch of clouds that the
+    tracker's point backbone (:func:`point_backbone`) encodes inside the block (template, then
+    search for the matching trackers; search, then memory frames for MBPTrack), applying
     ``transform`` to the features the backbone returns. Restores the backbone on exit."""
-    backbone = _backbone_of(tracker)
+    module, method = point_backbone(tracker)
     records: list[tuple[torch.Tensor, torch.Tensor]] = []
-    original = backbone.forward_many
+    original = getattr(module, method)
     depth = [0]
 
-    def forward_many(clouds, orders):
+    def tapped(*args, **kwargs):
         depth[0] += 1
         try:
-            outs = original(clouds, orders)
+            outs = original(*args, **kwargs)
         finally:
             depth[0] -= 1
         if depth[0]:  # the backbone calling itself (one cloud at a time in training): the
             return outs  # outermost call records and transforms, once per cloud
+        many = isinstance(outs, list)  # forward_many: a list of (xyz, features, idx)
+        items = outs if many else [outs]
         if transform is not None:
-            outs = [(xyz, transform(feat), idx) for xyz, feat, idx in outs]
-        records.extend((xyz, feat) for xyz, feat, _ in outs)
-        return outs
+            items = [(out[0], transform(out[1]), *out[2:]) for out in items]
+        records.extend((out[0], out[1]) for out in items)
+        return items if many else items[0]
 
-    backbone.forward_many = forward_many  # instance attribute: shadows the method, not saved
+    setattr(module, method, tapped)  # instance attribute: shadows the method, not saved
     try:
         yield records
     finally:
-        del backbone.forward_many
+        delattr(module, method)
 
 
-def _backbone_of(tracker: nn.Module):
-    backbone = getattr(tracker, "backbone", None)
-    if not isinstance(backbone, Backbone) or not callable(getattr(tracker, "loss", None)):
-        raise ValueError(
-            f"DRCT needs a learned tracker with a PointNet++ backbone and a loss (p2b, bat, gpt); "
-            f"got {type(tracker).__name__}"
-        )
-    return backbone
+def point_backbone(tracker: nn.Module) -> tuple[nn.Module, str]:
+    """The module DRCT taps and the name of its method that encodes clouds.
+
+    The protocol: a tracker with a ``loss`` names its point backbone in a class attribute
+    ``drct_backbone = (attribute, method)`` (MBPTrack: ``("backbone", "forward")``); without one,
+    a :class:`trackers.backbone.Backbone` at ``tracker.backbone`` is tapped at ``forward_many``
+    (P2B, BAT, GPT). The method returns ``(xyz (F, M, 3), features (F, M, D), ...)`` for one
+    batch of ``F = k B`` clouds (each sample's ``k`` consecutive), or a list of those; the
+    module has ``out_channels`` (``D``)."""
+    if callable(getattr(tracker, "loss", None)):
+        spec = getattr(type(tracker), "drct_backbone", None)
+        if spec is not None:
+            module = getattr(tracker, spec[0], None)
+            if isinstance(module, nn.Module) and callable(getattr(module, spec[1], None)):
+                return module, spec[1]
+        backbone = getattr(tracker, "backbone", None)
+        if spec is None and isinstance(backbone, Backbone):
+            return backbone, "forward_many"
+    raise ValueError(
+        f"DRCT needs a learned tracker with a point backbone and a loss (p2b, bat, gpt, "
+        f"mbptrack); got {type(tracker).__name__}"
+    )
+
+
+def sample_contrast(
+    primary: list[tuple[torch.Tensor, torch.Tensor]],
+    auxiliary: list[tuple[torch.Tensor, torch.Tensor]],
+    batch_size: int,
+    radius_m: float,
+    neighbours: int,
+) -> torch.Tensor:
+    """The per-sample contrast ``(B,)`` over the tapped records of both branches (pairs of
+    ``(xyz (F, M, 3), features (F, M, D))``, in the same order): the mean over the records of
+    :func:`local_geometric_contrast`. A record of ``k > 1`` clouds per sample (MBPTrack's memory
+    frames, ``F = k B``) counts as the mean over that sample's clouds with points (an empty
+    memory slot is padding, not a frame), and not at all where the sample has none; a record of
+    one cloud per sample counts as it is (an empty search crop too, as for P2B)."""
+    terms, weights = [], []
+    for (p_xyz, p_feat), (a_xyz, a_feat) in zip(primary, auxiliary, strict=True):
+        c = local_geometric_contrast(a_xyz, a_feat, p_xyz, p_feat, radius_m, neighbours)
+        k = c.shape[0] // batch_size
+        if k * batch_size != c.shape[0]:
+            raise RuntimeError(
+                f"DRCT tapped a backbone batch of {c.shape[0]} clouds for {batch_size} samples"
+            )
+        if k == 1:
+            terms.append(c)
+            weights.append(torch.ones_like(c))
+            continue
+        has = a_xyz.detach().flatten(1).ne(0).any(1).view(batch_size, k).to(c.dtype)
+        n = has.sum(1)
+        terms.append((c.view(batch_size, k) * has).sum(1) / n.clamp(min=1))
+        weights.append((n > 0).to(c.dtype))
+    w = torch.stack(weights)
+    return (torch.stack(terms) * w).sum(0) / w.sum(0).clamp(min=1)
 
 
 # --------------------------------------------------------------------------- training hooks
@@ -277,7 +355,8 @@ class DRCT(nn.Module):
     def __init__(self, tracker: nn.Module, config: DRCTConfig | None = None) -> None:
         super().__init__()
         self.config = config or DRCTConfig()
-        channels = _backbone_of(tracker).out_channels
+        module, _ = point_backbone(tracker)
+        channels = int(module.out_channels)
         self.aux: nn.Module | None = None
         self.ffn: FeedForward | None = None
         if self.config.variant == "asymmetric":
@@ -313,16 +392,13 @@ class DRCT(nn.Module):
         if not primary or len(primary) != len(auxiliary):
             raise RuntimeError(
                 f"DRCT recorded {len(primary)} primary and {len(auxiliary)} auxiliary backbone "
-                "outputs; the tracker must encode its clouds through tracker.backbone"
+                "outputs; the tracker must encode its clouds through its point backbone"
             )
-        terms = []
-        for (p_xyz, p_feat), (a_xyz, a_feat) in zip(primary, auxiliary, strict=True):
-            if cfg.detach_aux:
-                a_xyz, a_feat = a_xyz.detach(), a_feat.detach()
-            terms.append(
-                local_geometric_contrast(a_xyz, a_feat, p_xyz, p_feat, cfg.radius_m, cfg.neighbours)
-            )
-        contrast = torch.stack(terms).mean(0)
+        if cfg.detach_aux:
+            auxiliary = [(xyz.detach(), feat.detach()) for xyz, feat in auxiliary]
+        contrast = sample_contrast(
+            primary, auxiliary, losses["total"].shape[0], cfg.radius_m, cfg.neighbours
+        )
         total = (
             losses["total"] + cfg.aux_weight * aux_losses["total"] + cfg.contrast_weight * contrast
         )
