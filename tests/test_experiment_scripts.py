@@ -193,3 +193,30 @@ def test_table4_names_a_folder_without_one_report(tmp_path):
     (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)
     with pytest.raises(SystemExit, match="p2b-none-s0/report.json: cannot read an eval report"):
         script.main([str(tmp_path)])
+
+
+def test_results_markdown_cells_carry_intervals_and_skip_the_unseen_category():
+    script = _script("results_markdown")
+
+    def entry(s, p, lo, hi, seeds=None):
+        out = {"success": s, "precision": p, "success_interval": [lo, hi]}
+        return out | ({"success_seeds": seeds} if seeds else {})
+
+    report = {
+        "observed": entry(44.85, 60.25, 34.61, 55.19),
+        "unseen": entry(40.5, 49.1, 31.8, 49.3, [41.6, 39.6, 40.3]),
+        "categories": {
+            "Pedestrian": entry(28.0, 43.4, 19.6, 39.6),
+            "Car": entry(40.5, 49.1, 31.8, 49.3),
+        },
+        "per_tracklet": [
+            {"category": "Pedestrian", "observed": True},
+            {"category": "Car", "observed": False},
+        ],
+    }
+    lines = script.table({"p2b-kitti1-u": report}).splitlines()
+    assert lines[0] == "| tracker | observed | unseen | unseen Success per eval seed | Pedestrian |"
+    assert lines[2] == (
+        "| `p2b-kitti1-u` | 44.9 [34.6, 55.2] / 60.2 | 40.5 [31.8, 49.3] / 49.1 "
+        "| 41.6 / 39.6 / 40.3 | 28.0 [19.6, 39.6] / 43.4 |"
+    )
