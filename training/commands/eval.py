@@ -134,7 +134,11 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         help="--dataset nuscenes: table folder (default v1.0-trainval with --root, else "
         "v1.0-mini); --split train/val/test read train_track/train_detect/val",
     )
-    parser.add_argument("--preset", default="small", help="synthetic preset (tiny, small, default)")
+    parser.add_argument(
+        "--preset",
+        default="small",
+        help="synthetic preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
+    )
     parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
     parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
     parser.add_argument(

@@ -82,7 +82,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="the -RD control: plain training on domain-randomised samples (dr_* config keys)",
     )
-    parser.add_argument("--preset", help="synthetic world preset (tiny, small, default)")
+    parser.add_argument(
+        "--preset",
+        help="synthetic world preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
+    )
     parser.add_argument("--sensor", help="synthetic LiDAR profile (hdl64, hdl32)")
     parser.add_argument("--data-root", dest="data_root", help="KITTI tracking root")
     parser.add_argument(
