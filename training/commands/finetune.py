@@ -82,7 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     config_flag("setting", "its observed categories are trained on")
     config_flag(
         "preset",
-        "synthetic world preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
+        "world preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
     )
     config_flag("sensor", "synthetic LiDAR profile")
     config_flag("world-seed", "synthetic world seed (its train split is used)")

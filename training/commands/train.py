@@ -84,7 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--preset",
-        help="synthetic world preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
+        help="world preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
     )
     parser.add_argument("--sensor", help="synthetic LiDAR profile (hdl64, hdl32)")
     parser.add_argument("--data-root", dest="data_root", help="KITTI tracking root")
