@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
-# Table IV pilot (docs/table4.md): P2B slim, -U against -W, training seeds 0-2, on the `small-km`
-# world, in one class-agnostic setting; two runs at a time, one torch thread each. Run again
-# after a kill: training resumes from OUT/last.pt and finished evaluations are kept.
+# Table IV pilot (docs/table4.md): P2B slim, -U against -W (and -S with ARMS), training seeds
+# 0-2, on the `small-km` world, in one class-agnostic setting; PARALLEL runs at a time (default
+# 2), one torch thread each. Run again after a kill: training resumes from OUT/last.pt and
+# finished runs and evaluations are kept.
 #   bash experiments/table4_pilot.sh [ROOT [SETTING]]   # defaults: runs/table4-pilot kitti-1
+#   ARMS="none decorrelation sam" PARALLEL=3 bash experiments/table4_pilot.sh ROOT kitti-1
 set -euo pipefail
 root=${1:-runs/table4-pilot}
 setting=${2:-kitti-1}
+read -r -a arms <<< "${ARMS:-none decorrelation}"
+parallel=${PARALLEL:-2}
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 budget=(--epochs 8 --iters-per-epoch 50 --batch-size 16 --val-max-tracklets 16 --val-max-frames 60)
 
@@ -29,16 +33,19 @@ eval_one() {  # NAME TRACKER...
   touch "$out/done"
 }
 
+limited() {  # run "$@" in the background once fewer than $parallel jobs run
+  while [ "$(jobs -rp | wc -l)" -ge "$parallel" ]; do wait -n; done
+  "$@" &
+}
+
 mkdir -p "$root/logs" "$root/test"
 for seed in 0 1 2; do
-  train_one none "$seed" &
-  train_one decorrelation "$seed" &
-  wait
+  for arm in "${arms[@]}"; do limited train_one "$arm" "$seed"; done
 done
+wait
 eval_one baselines previous_box constant_velocity
 for seed in 0 1 2; do
-  eval_one "p2b-none-s$seed" "$root/p2b-none-s$seed/best.pt" &
-  eval_one "p2b-decorrelation-s$seed" "$root/p2b-decorrelation-s$seed/best.pt" &
-  wait
+  for arm in "${arms[@]}"; do limited eval_one "p2b-$arm-s$seed" "$root/p2b-$arm-s$seed/best.pt"; done
 done
-python experiments/table4.py "$root" --setting "$setting"
+wait
+python experiments/table4.py "$root" --setting "$setting" --arms "${arms[@]}"
