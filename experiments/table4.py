@@ -4,7 +4,8 @@ Reads the eval reports that ``experiments/table4_pilot.sh`` writes (``ROOT/test/
 one ``pointtrack eval --eval-seeds ... --out`` per directory) and prints the markdown
 tables of docs/table4.md. Nothing is typed in by hand but the paper's numbers.
 
-    python experiments/table4.py runs/table4-pilot [--setting kitti-1] [--arms none decorrelation]
+    python experiments/table4.py runs/table4-pilot [--tracker p2b] [--setting kitti-1] \
+        [--arms none decorrelation]
 """
 
 from __future__ import annotations
@@ -17,10 +18,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
-#: P2B Success (observed, unseen) in the paper's Table IV, by setting and weighting
+#: Success (observed, unseen) in the paper's Table IV, by tracker, setting and weighting
 PAPER = {
-    "kitti-1": {"none": (38.6, 32.4), "decorrelation": (41.0, 34.7), "sam": (31.4, 21.3)},
-    "kitti-2": {"none": (55.6, 24.2), "decorrelation": (56.2, 26.6), "sam": (46.9, 20.9)},
+    "p2b": {
+        "kitti-1": {"none": (38.6, 32.4), "decorrelation": (41.0, 34.7), "sam": (31.4, 21.3)},
+        "kitti-2": {"none": (55.6, 24.2), "decorrelation": (56.2, 26.6), "sam": (46.9, 20.9)},
+        "nuscenes-1": {"none": (31.1, 34.3), "decorrelation": (32.6, 37.4), "sam": (26.1, 29.7)},
+        "nuscenes-2": {"none": (42.5, 14.6), "decorrelation": (41.4, 16.2), "sam": (36.5, 13.3)},
+    },
+    "bat": {
+        "kitti-1": {"none": (33.9, 24.9), "decorrelation": (35.7, 28.1), "sam": (22.5, 18.1)},
+        "kitti-2": {"none": (59.6, 12.9), "decorrelation": (61.8, 14.6), "sam": (43.5, 10.6)},
+        "nuscenes-1": {"none": (30.9, 33.6), "decorrelation": (33.4, 36.0), "sam": (29.7, 32.8)},
+        "nuscenes-2": {"none": (38.6, 16.9), "decorrelation": (41.9, 19.0), "sam": (38.5, 19.3)},
+    },
 }
 ARM_SUFFIX = {"none": "-U", "decorrelation": "-W", "sam": "-S"}
 #: two-sided 90 % Student t quantiles by degrees of freedom
@@ -78,20 +89,22 @@ def paired(diffs: list[float]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("root", type=Path)
-    parser.add_argument("--setting", choices=sorted(PAPER), default="kitti-1")
+    parser.add_argument("--tracker", choices=sorted(PAPER), default="p2b")
+    parser.add_argument("--setting", choices=sorted(PAPER["p2b"]), default="kitti-1")
     parser.add_argument("--arms", nargs="+", default=["none", "decorrelation"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     args = parser.parse_args(argv)
     test = args.root / "test"
+    label, paper_cells = args.tracker.upper(), PAPER[args.tracker][args.setting]
     reports = {
-        (arm, seed): load_report(test / f"p2b-{arm}-s{seed}")
+        (arm, seed): load_report(test / f"{args.tracker}-{arm}-s{seed}")
         for arm in args.arms
         for seed in args.seeds
     }
     print("| file | observed Success [90 % CI] | unseen Success [90 % CI] |")
     print("| --- | --- | --- |")
     for (arm, seed), rep in reports.items():
-        name = f"P2B{ARM_SUFFIX[arm]} seed {seed}"
+        name = f"{label}{ARM_SUFFIX[arm]} seed {seed}"
         print(f"| {name} | {cell(rep, 'observed')} | {cell(rep, 'unseen')} |")
     if (test / "baselines").is_dir():
         for name, rep in load_reports(test / "baselines").items():
@@ -101,8 +114,8 @@ def main(argv: list[str] | None = None) -> int:
     print("| --- | --- | --- | --- |")
     for arm in args.arms:
         row = [mean_sd([success(reports[arm, s], g)[0] for s in args.seeds]) for g in GROUPS]
-        paper = "{} / {}".format(*PAPER[args.setting][arm])
-        print(f"| P2B{ARM_SUFFIX[arm]} | {row[0]} | {row[1]} | {paper} |")
+        paper = "{} / {}".format(*paper_cells[arm])
+        print(f"| {label}{ARM_SUFFIX[arm]} | {row[0]} | {row[1]} | {paper} |")
     print()
     ref = args.arms[0]
     for arm in args.arms[1:]:
@@ -110,9 +123,9 @@ def main(argv: list[str] | None = None) -> int:
             g: [success(reports[arm, s], g)[0] - success(reports[ref, s], g)[0] for s in args.seeds]
             for g in GROUPS
         }
-        paper = [PAPER[args.setting][arm][i] - PAPER[args.setting][ref][i] for i in range(2)]
+        paper = [paper_cells[arm][i] - paper_cells[ref][i] for i in range(2)]
         print(
-            f"P2B{ARM_SUFFIX[arm]} minus P2B{ARM_SUFFIX[ref]}, paired by training seed "
+            f"{label}{ARM_SUFFIX[arm]} minus {label}{ARM_SUFFIX[ref]}, paired by training seed "
             f"(mean [90 % t interval]): observed {paired(diffs['observed'])}, "
             f"unseen {paired(diffs['unseen'])}; paper {paper[0]:+.1f} / {paper[1]:+.1f}"
         )

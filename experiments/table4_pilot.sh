@@ -1,24 +1,28 @@
 #!/usr/bin/env bash
-# Table IV pilot (docs/table4.md): P2B slim, -U against -W (and -S with ARMS), training seeds
-# 0-2, on the `small-km` world, in one class-agnostic setting; PARALLEL runs at a time (default
-# 2), one torch thread each. Run again after a kill: training resumes from OUT/last.pt and
-# finished runs and evaluations are kept.
+# Table IV pilot (docs/table4.md): a slim TRACKER (default p2b), -U against -W (and -S with
+# ARMS), training seeds 0-2, on one synthetic WORLD (default the `small-km` KITTI-layout world),
+# in one class-agnostic setting; PARALLEL runs at a time (default 2), one torch thread each. Run
+# again after a kill: training resumes from OUT/last.pt and finished runs and evaluations are kept.
 #   bash experiments/table4_pilot.sh [ROOT [SETTING]]   # defaults: runs/table4-pilot kitti-1
 #   ARMS="none decorrelation sam" PARALLEL=3 bash experiments/table4_pilot.sh ROOT kitti-1
+#   WORLD="--dataset nuscenes --preset default-km --sensor hdl32" \
+#     bash experiments/table4_pilot.sh runs/table4-pilot-nus1 nuscenes-1
 set -euo pipefail
 root=${1:-runs/table4-pilot}
 setting=${2:-kitti-1}
 read -r -a arms <<< "${ARMS:-none decorrelation}"
 parallel=${PARALLEL:-2}
+tracker=${TRACKER:-p2b}
+read -r -a world <<< "${WORLD:---dataset synthetic --preset small-km}"
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 budget=(--epochs 8 --iters-per-epoch 50 --batch-size 16 --val-max-tracklets 16 --val-max-frames 60)
 
 train_one() {  # WEIGHTING SEED
-  local out="$root/p2b-$1-s$2" resume=()
+  local out="$root/$tracker-$1-s$2" resume=()
   if [ -e "$out/done" ]; then return; fi
   if [ -e "$out/config.yaml" ]; then resume=(--resume); fi
-  pointtrack train --tracker p2b --model-size slim --setting "$setting" --weighting "$1" \
-    --dataset synthetic --preset small-km --world-seed 0 --seed "$2" --threads 1 \
+  pointtrack train --tracker "$tracker" --model-size slim --setting "$setting" --weighting "$1" \
+    "${world[@]}" --world-seed 0 --seed "$2" --threads 1 \
     "${budget[@]}" --no-progress --out "$out" "${resume[@]}" > "$root/logs/train-$1-s$2.log" 2>&1
   touch "$out/done"
 }
@@ -27,7 +31,7 @@ eval_one() {  # NAME TRACKER...
   local out="$root/test/$1"
   if [ -e "$out/done" ]; then return; fi
   shift
-  pointtrack eval --tracker "$@" --dataset synthetic --preset small-km --seed 0 --split test \
+  pointtrack eval --tracker "$@" "${world[@]}" --seed 0 --split test \
     --setting "$setting" --eval-seeds 0 1 2 --workers 1 --no-progress --out "$out" \
     > "$root/logs/eval-$(basename "$out").log" 2>&1
   touch "$out/done"
@@ -45,7 +49,7 @@ done
 wait
 eval_one baselines previous_box constant_velocity
 for seed in 0 1 2; do
-  for arm in "${arms[@]}"; do limited eval_one "p2b-$arm-s$seed" "$root/p2b-$arm-s$seed/best.pt"; done
+  for arm in "${arms[@]}"; do limited eval_one "$tracker-$arm-s$seed" "$root/$tracker-$arm-s$seed/best.pt"; done
 done
 wait
-python experiments/table4.py "$root" --setting "$setting" --arms "${arms[@]}"
+python experiments/table4.py "$root" --tracker "$tracker" --setting "$setting" --arms "${arms[@]}"

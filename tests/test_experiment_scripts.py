@@ -188,6 +188,20 @@ def test_table4_reproduces_cells_and_paired_difference(tmp_path, capsys):
     assert "paper +2.4 / +2.3" in out
 
 
+def test_table4_reads_another_tracker_and_setting(tmp_path, capsys):
+    script = _script("table4")
+    for arm, obs in (("none", 30.0), ("decorrelation", 31.5)):
+        for seed in (0, 1):
+            _eval_report(tmp_path / "test" / f"bat-{arm}-s{seed}", "best.pt", obs + seed, 20.0)
+    argv = [str(tmp_path), "--tracker", "bat", "--setting", "nuscenes-1", "--seeds", "0", "1"]
+    assert script.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "| BAT-W seed 1 | 32.5 [31.5, 33.5] | 20.0 [18.0, 22.0] |" in out
+    assert "| BAT-U | 30.5 ± 0.7 | 20.0 ± 0.0 | 30.9 / 33.6 |" in out
+    # the paper's BAT nuScenes-1: -W 33.4 / 36.0 against -U 30.9 / 33.6
+    assert "BAT-W minus BAT-U" in out and "paper +2.5 / +2.4" in out
+
+
 def test_table4_names_a_folder_without_one_report(tmp_path):
     script = _script("table4")
     (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)
