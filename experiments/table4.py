@@ -6,6 +6,7 @@ tables of docs/table4.md. Nothing is typed in by hand but the paper's numbers.
 
     python experiments/table4.py runs/table4-pilot [--tracker p2b] [--setting kitti-1] \
         [--arms none decorrelation]
+    python experiments/table4.py --grid kitti-1=runs/table4-pilot kitti-2=runs/table4-pilot-kitti2
 """
 
 from __future__ import annotations
@@ -86,20 +87,14 @@ def paired(diffs: list[float]) -> str:
     return f"{mean:+.1f} [{mean - half:+.1f}, {mean + half:+.1f}]"
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("root", type=Path)
-    parser.add_argument("--tracker", choices=sorted(PAPER), default="p2b")
-    parser.add_argument("--setting", choices=sorted(PAPER["p2b"]), default="kitti-1")
-    parser.add_argument("--arms", nargs="+", default=["none", "decorrelation"])
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    args = parser.parse_args(argv)
-    test = args.root / "test"
-    label, paper_cells = args.tracker.upper(), PAPER[args.tracker][args.setting]
+def setting_tables(root: Path, tracker: str, setting: str, arms: list[str], seeds: list[int]):
+    """Print one setting's tables: per file, mean ± sd per arm, paired differences to arms[0]."""
+    test = root / "test"
+    label, paper_cells = tracker.upper(), PAPER[tracker][setting]
     reports = {
-        (arm, seed): load_report(test / f"{args.tracker}-{arm}-s{seed}")
-        for arm in args.arms
-        for seed in args.seeds
+        (arm, seed): load_report(test / f"{tracker}-{arm}-s{seed}")
+        for arm in arms
+        for seed in seeds
     }
     print("| file | observed Success [90 % CI] | unseen Success [90 % CI] |")
     print("| --- | --- | --- |")
@@ -112,23 +107,98 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print("| arm | observed, mean ± sd | unseen, mean ± sd | paper observed / unseen |")
     print("| --- | --- | --- | --- |")
-    for arm in args.arms:
-        row = [mean_sd([success(reports[arm, s], g)[0] for s in args.seeds]) for g in GROUPS]
+    for arm in arms:
+        row = [mean_sd([success(reports[arm, s], g)[0] for s in seeds]) for g in GROUPS]
         paper = "{} / {}".format(*paper_cells[arm])
         print(f"| {label}{ARM_SUFFIX[arm]} | {row[0]} | {row[1]} | {paper} |")
     print()
-    ref = args.arms[0]
-    for arm in args.arms[1:]:
-        diffs = {
-            g: [success(reports[arm, s], g)[0] - success(reports[ref, s], g)[0] for s in args.seeds]
-            for g in GROUPS
-        }
-        paper = [paper_cells[arm][i] - paper_cells[ref][i] for i in range(2)]
+    for arm in arms[1:]:
+        result = difference(reports, arms[0], arm, seeds, paper_cells)
         print(
-            f"{label}{ARM_SUFFIX[arm]} minus {label}{ARM_SUFFIX[ref]}, paired by training seed "
-            f"(mean [90 % t interval]): observed {paired(diffs['observed'])}, "
-            f"unseen {paired(diffs['unseen'])}; paper {paper[0]:+.1f} / {paper[1]:+.1f}"
+            f"{label}{ARM_SUFFIX[arm]} minus {label}{ARM_SUFFIX[arms[0]]}, paired by training "
+            f"seed (mean [90 % t interval]): {result}"
         )
+
+
+def difference(reports, ref: str, arm: str, seeds: list[int], paper_cells) -> str:
+    """``arm`` minus ``ref`` paired by seed, observed and unseen, beside the paper's."""
+    diffs = {
+        g: [success(reports[arm, s], g)[0] - success(reports[ref, s], g)[0] for s in seeds]
+        for g in GROUPS
+    }
+    paper = [paper_cells[arm][i] - paper_cells[ref][i] for i in range(2)]
+    return (
+        f"observed {paired(diffs['observed'])}, unseen {paired(diffs['unseen'])}; "
+        f"paper {paper[0]:+.1f} / {paper[1]:+.1f}"
+    )
+
+
+def grid_table(roots: dict[str, Path], tracker: str, seeds: list[int]) -> None:
+    """Print Table IV's layout: one row per arm, observed / unseen per setting, mean ± sd over
+    the training seeds (the paper's number in brackets); "not run" where a setting's root lacks
+    the arm's reports; then the paired differences to -U."""
+    label, settings = tracker.upper(), list(PAPER[tracker])
+    test = {name: root / "test" for name, root in roots.items()}
+    reports = {
+        (name, arm, seed): load_report(test[name] / f"{tracker}-{arm}-s{seed}")
+        for name in roots
+        for arm in ARM_SUFFIX
+        for seed in seeds
+        if all((test[name] / f"{tracker}-{arm}-s{s}").is_dir() for s in seeds)
+    }
+    print("| | " + " | ".join(f"{n} observed | {n} unseen" for n in settings) + " |")
+    print("| --- " * (1 + 2 * len(settings)) + "|")
+    for arm, suffix in ARM_SUFFIX.items():
+        cells = []
+        for name in settings:
+            for i, group in enumerate(GROUPS):
+                paper = PAPER[tracker][name][arm][i]
+                if (name, arm, seeds[0]) not in reports:
+                    cells.append(f"not run ({paper})")
+                    continue
+                values = [success(reports[name, arm, s], group)[0] for s in seeds]
+                cells.append(f"{mean_sd(values)} ({paper})")
+        print(f"| {label}{suffix} | " + " | ".join(cells) + " |")
+    print()
+    for name in settings:
+        for arm in ("decorrelation", "sam"):
+            if (name, arm, seeds[0]) in reports and (name, "none", seeds[0]) in reports:
+                by_arm = {(a, s): reports[name, a, s] for a in ("none", arm) for s in seeds}
+                result = difference(by_arm, "none", arm, seeds, PAPER[tracker][name])
+                print(f"* {name}, {label}{ARM_SUFFIX[arm]} minus {label}-U: {result}")
+
+
+def setting_root(text: str) -> tuple[str, Path]:
+    """``SETTING=ROOT`` of ``--grid``."""
+    name, sep, root = text.partition("=")
+    if not sep or name not in PAPER["p2b"]:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected SETTING=ROOT with SETTING one of {', '.join(PAPER['p2b'])}"
+        )
+    return name, Path(root)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("root", type=Path, nargs="?", help="one setting's run root")
+    parser.add_argument(
+        "--grid",
+        nargs="+",
+        type=setting_root,
+        metavar="SETTING=ROOT",
+        help="print Table IV's layout over these settings' run roots instead",
+    )
+    parser.add_argument("--tracker", choices=sorted(PAPER), default="p2b")
+    parser.add_argument("--setting", choices=sorted(PAPER["p2b"]), default="kitti-1")
+    parser.add_argument("--arms", nargs="+", default=["none", "decorrelation"])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    args = parser.parse_args(argv)
+    if args.grid:
+        grid_table(dict(args.grid), args.tracker, args.seeds)
+    elif args.root is None:
+        parser.error("give a run root or --grid SETTING=ROOT ...")
+    else:
+        setting_tables(args.root, args.tracker, args.setting, args.arms, args.seeds)
     return 0
 
 

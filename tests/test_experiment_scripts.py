@@ -202,6 +202,31 @@ def test_table4_reads_another_tracker_and_setting(tmp_path, capsys):
     assert "BAT-W minus BAT-U" in out and "paper +2.5 / +2.4" in out
 
 
+def test_table4_grid_lays_out_settings_and_marks_what_did_not_run(tmp_path, capsys):
+    script = _script("table4")
+    for arm, unseen in (("none", (20.0, 22.0, 21.0)), ("decorrelation", (23.0, 24.0, 23.0))):
+        for seed in (0, 1, 2):
+            folder = tmp_path / "k2" / "test" / f"p2b-{arm}-s{seed}"
+            _eval_report(folder, "best.pt", 30.0 + seed, unseen[seed])
+    assert script.main(["--grid", f"kitti-2={tmp_path / 'k2'}"]) == 0
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| P2B-W |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    # kitti-1 columns first (not given), then kitti-2's observed and unseen with the paper's
+    assert cells[1:5] == [
+        "not run (41.0)",
+        "not run (34.7)",
+        "31.0 ± 1.0 (56.2)",
+        "23.3 ± 0.6 (26.6)",
+    ]
+    assert "| P2B-S | not run (31.4)" in out
+    assert (
+        "* kitti-2, P2B-W minus P2B-U: observed +0.0 [+0.0, +0.0], unseen +2.3 [+1.4, +3.3]" in out
+    )
+    with pytest.raises(SystemExit):
+        script.main(["--grid", "kitti-9=x"])
+
+
 def test_table4_names_a_folder_without_one_report(tmp_path):
     script = _script("table4")
     (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)
