@@ -227,6 +227,42 @@ def test_table4_grid_lays_out_settings_and_marks_what_did_not_run(tmp_path, caps
         script.main(["--grid", "kitti-9=x"])
 
 
+def _ship_root(tmp_path: Path, unseen: float) -> Path:
+    """A pilot root: seed 1 selected for -U, its test reading, two baselines at 10 / 12."""
+    root = tmp_path / "nus1"
+    _eval_report(root / "test" / "p2b-none-s1", "best.pt", 20.0, unseen)
+    baselines = {
+        name: {"observed": {"success": 10.0}, "unseen": {"success": 12.0}, "per_tracklet": []}
+        for name in ("previous_box", "constant_velocity")
+    }
+    (root / "test" / "baselines").mkdir()
+    (root / "test" / "baselines" / "report.json").write_text(json.dumps(baselines))
+    select = root / "select-none"
+    select.mkdir()
+    ranking = [{"candidate": str(root / "p2b-none-s1" / "best.pt")}, {"candidate": "other"}]
+    (select / "selection.json").write_text(json.dumps({"ranking": ranking}))
+    (select / "p2b-nuscenes1-u.safetensors").write_bytes(b"weights")
+    return root
+
+
+def test_table4_ship_copies_the_selected_file_only_past_both_baselines(tmp_path, capsys):
+    script = _script("table4_ship")
+    shipped = tmp_path / "checkpoints"
+    shipped.mkdir()
+    root = _ship_root(tmp_path, unseen=11.0)  # unseen 11 < 12: not shipped
+    argv = [str(root), "none", "p2b-nuscenes1-u", "--checkpoints", str(shipped)]
+    assert script.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "p2b-none-s1 unseen 11.0 does not beat previous_box 12.0" in out
+    assert "p2b-nuscenes1-u: not shipped" in out and not list(shipped.iterdir())
+    root = _ship_root(tmp_path / "again", unseen=13.0)
+    argv = [str(root), "none", "p2b-nuscenes1-u", "--checkpoints", str(shipped)]
+    assert script.main(argv) == 0
+    assert (shipped / "p2b-nuscenes1-u.safetensors").read_bytes() == b"weights"
+    manifest = json.loads((shipped / "manifest.json").read_text())
+    assert list(manifest["files"]) == ["p2b-nuscenes1-u.safetensors"]
+
+
 def test_table4_names_a_folder_without_one_report(tmp_path):
     script = _script("table4")
     (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)

@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# Table IV pilot, shipping (docs/table4.md, "Shipping"): per cell without a shipped file,
+# `pointtrack select` over the three seeds' best.pt on never-trained worlds, then
+# experiments/table4_ship.py ships the first-ranked file if its pilot test reading beats both
+# baselines. Resumable: a finished selection (its selection.json) is kept.
+#   bash experiments/table4_ship.sh [RUNS]   # RUNS holds table4-pilot, table4-pilot-nus1/-nus2
+set -euo pipefail
+runs=${1:-runs}
+export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+
+ship() {  # ROOT SETTING ARM NAME WORLD-FLAGS...
+  local root=$1 setting=$2 arm=$3 name=$4
+  shift 4
+  local out="$root/select-$arm" seed
+  for seed in 0 1 2; do
+    if [ ! -e "$root/p2b-$arm-s$seed/done" ]; then
+      echo "$root/p2b-$arm-s$seed: training not finished (no done marker)" >&2
+      return 1
+    fi
+  done
+  if [ ! -e "$out/selection.json" ]; then
+    pointtrack select "$root/p2b-$arm-s0/best.pt" "$root/p2b-$arm-s1/best.pt" \
+      "$root/p2b-$arm-s2/best.pt" --setting "$setting" "$@" --train-world 0 --workers 1 \
+      --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/select-$arm.log" 2>&1
+  fi
+  python experiments/table4_ship.py "$root" "$arm" "$name"
+}
+
+nus=(--dataset nuscenes --preset default-km --sensor hdl32)
+ship "$runs/table4-pilot" kitti-1 sam p2b-kitti1-s --dataset synthetic --preset small-km
+for arm in none decorrelation; do
+  suffix=$([ "$arm" = none ] && echo u || echo w)
+  ship "$runs/table4-pilot-nus1" nuscenes-1 "$arm" "p2b-nuscenes1-$suffix" "${nus[@]}"
+  ship "$runs/table4-pilot-nus2" nuscenes-2 "$arm" "p2b-nuscenes2-$suffix" "${nus[@]}"
+done
