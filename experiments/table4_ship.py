@@ -4,24 +4,33 @@ Reads ``ROOT/select-ARM/selection.json`` (a ``pointtrack select --out``), finds 
 candidate's run, and compares that run's pilot test reading (``ROOT/test/RUN/report.json``) with
 the baselines' (``ROOT/test/baselines/report.json``) on observed and unseen Success. On a pass it
 copies ``ROOT/select-ARM/NAME.safetensors`` (``pointtrack select --save``) into the shipped
-checkpoint directory and records its digest in the manifest; no test split is read here.
+checkpoint directory and writes its recipe ``configs/checkpoints/NAME.yaml`` (the file's own
+provenance, the commands given by ``--command``); ``python scripts/backfill_provenance.py`` then
+records the recipe in the file and the manifest. No test split is read here.
 
-    python experiments/table4_ship.py ROOT ARM NAME [--dry-run]
+    python experiments/table4_ship.py ROOT ARM NAME [--command CMD ...] [--dry-run]
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import shutil
 import sys
 from pathlib import Path
 
+import yaml
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from table4 import GROUPS, load_report, load_reports, success  # noqa: E402 - same folder
 
-from trackers.registry import CHECKPOINT_DIR, write_manifest  # noqa: E402
+import trackers  # noqa: E402
+from trackers.provenance import strip_provenance_bytes  # noqa: E402
+from trackers.registry import CHECKPOINT_DIR  # noqa: E402
+
+RECIPE_DIR = Path(__file__).resolve().parents[1] / "configs" / "checkpoints"
 
 
 def selected_run(selection: Path) -> str:
@@ -50,13 +59,39 @@ def gate(root: Path, run: str) -> tuple[bool, list[str]]:
     return passed, lines
 
 
+def write_recipe(source: Path, name: str, commands: list[str], folder: Path) -> Path:
+    """``folder/NAME.yaml``: the recipe of the shipped file ``source`` (its provenance as the
+    selection wrote it, the digest of its bytes without provenance, the commands)."""
+    provenance = trackers.load(source).provenance.to_dict()
+    for key in ("written_by", "config_file"):  # the back-fill sets these
+        provenance.pop(key, None)
+    digest = hashlib.sha256(strip_provenance_bytes(source.read_bytes(), str(source))).hexdigest()
+    recipe = {
+        "checkpoint": name,
+        "sha256_without_provenance": digest,
+        "commands": commands,
+        "lost": ["the run directories (runs/table4-pilot*) are not kept in the repository"],
+        "provenance": provenance,
+    }
+    path = folder / f"{name}.yaml"
+    header = f"# {name}: how trackers/checkpoints/{name}.safetensors was made (docs/table4.md)\n"
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(header + yaml.safe_dump(recipe, sort_keys=False, width=100))
+    tmp.replace(path)
+    return path
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("root", type=Path, help="the pilot's run root of one setting")
     parser.add_argument("arm", choices=("none", "decorrelation", "sam"))
     parser.add_argument("name", help="shipped name, e.g. p2b-nuscenes1-u")
     parser.add_argument("--dry-run", action="store_true", help="print the verdict only")
+    parser.add_argument(
+        "--command", action="append", default=[], help="a command of the recipe (repeatable)"
+    )
     parser.add_argument("--checkpoints", type=Path, default=CHECKPOINT_DIR)
+    parser.add_argument("--recipes", type=Path, default=RECIPE_DIR)
     args = parser.parse_args(argv)
     folder = args.root / f"select-{args.arm}"
     run = selected_run(folder / "selection.json")
@@ -74,7 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     target = args.checkpoints / source.name
     shutil.copyfile(source, target.with_suffix(".tmp"))
     target.with_suffix(".tmp").replace(target)
-    print(f"{args.name}: shipped {run} as {target}; manifest {write_manifest(args.checkpoints)}")
+    recipe = write_recipe(target, args.name, args.command, args.recipes)
+    print(f"{args.name}: shipped {run} as {target}, recipe {recipe}")
     return 0
 
 

@@ -2,7 +2,8 @@
 # Table IV pilot, shipping (docs/table4.md, "Shipping"): per cell without a shipped file,
 # `pointtrack select` over the three seeds' best.pt on never-trained worlds, then
 # experiments/table4_ship.py ships the first-ranked file if its pilot test reading beats both
-# baselines. Resumable: a finished selection (its selection.json) is kept.
+# baselines (and writes its recipe); then scripts/backfill_provenance.py records the recipes in
+# the files and the manifest. Resumable: a finished selection (its selection.json) is kept.
 #   bash experiments/table4_ship.sh [RUNS]   # RUNS holds table4-pilot, table4-pilot-nus1/-nus2
 set -euo pipefail
 runs=${1:-runs}
@@ -23,13 +24,15 @@ ship() {  # ROOT SETTING ARM NAME WORLD-FLAGS...
       "$root/p2b-$arm-s2/best.pt" --setting "$setting" "$@" --train-world 0 --workers 1 \
       --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/select-$arm.log" 2>&1
   fi
-  python experiments/table4_ship.py "$root" "$arm" "$name"
+  python experiments/table4_ship.py "$root" "$arm" "$name" \
+    --command "WORLD=\"$*\" bash experiments/table4_pilot.sh runs/$(basename "$root") $setting" \
+    --command "bash experiments/table4_ship.sh runs   # pointtrack select $*, then the gate"
 }
 
 nus=(--dataset nuscenes --preset default-km --sensor hdl32)
 ship "$runs/table4-pilot" kitti-1 sam p2b-kitti1-s --dataset synthetic --preset small-km
-for arm in none decorrelation; do
-  suffix=$([ "$arm" = none ] && echo u || echo w)
-  ship "$runs/table4-pilot-nus1" nuscenes-1 "$arm" "p2b-nuscenes1-$suffix" "${nus[@]}"
-  ship "$runs/table4-pilot-nus2" nuscenes-2 "$arm" "p2b-nuscenes2-$suffix" "${nus[@]}"
+for n in 1 2; do
+  ship "$runs/table4-pilot-nus$n" "nuscenes-$n" none "p2b-nuscenes$n-u" "${nus[@]}"
+  ship "$runs/table4-pilot-nus$n" "nuscenes-$n" decorrelation "p2b-nuscenes$n-w" "${nus[@]}"
 done
+python scripts/backfill_provenance.py

@@ -10,8 +10,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+import yaml
 from test_pretrain_support import fake_tracklets
 
+import trackers
 from trackers.head import HeadConfig
 from training.samples import TrackingSamples
 
@@ -241,26 +243,31 @@ def _ship_root(tmp_path: Path, unseen: float) -> Path:
     select.mkdir()
     ranking = [{"candidate": str(root / "p2b-none-s1" / "best.pt")}, {"candidate": "other"}]
     (select / "selection.json").write_text(json.dumps({"ranking": ranking}))
-    (select / "p2b-nuscenes1-u.safetensors").write_bytes(b"weights")
+    torch.manual_seed(0)
+    tracker = trackers.make("p2b", **trackers.size_config("p2b", "slim"))
+    trackers.save(tracker, select / "p2b-nuscenes1-u.safetensors")
     return root
 
 
 def test_table4_ship_copies_the_selected_file_only_past_both_baselines(tmp_path, capsys):
     script = _script("table4_ship")
-    shipped = tmp_path / "checkpoints"
+    shipped, recipes = tmp_path / "checkpoints", tmp_path / "recipes"
     shipped.mkdir()
+    recipes.mkdir()
+    dirs = ["--checkpoints", str(shipped), "--recipes", str(recipes), "--command", "make it"]
     root = _ship_root(tmp_path, unseen=11.0)  # unseen 11 < 12: not shipped
-    argv = [str(root), "none", "p2b-nuscenes1-u", "--checkpoints", str(shipped)]
-    assert script.main(argv) == 0
+    assert script.main([str(root), "none", "p2b-nuscenes1-u", *dirs]) == 0
     out = capsys.readouterr().out
     assert "p2b-none-s1 unseen 11.0 does not beat previous_box 12.0" in out
-    assert "p2b-nuscenes1-u: not shipped" in out and not list(shipped.iterdir())
+    assert "p2b-nuscenes1-u: not shipped" in out
+    assert not list(shipped.iterdir()) and not list(recipes.iterdir())
     root = _ship_root(tmp_path / "again", unseen=13.0)
-    argv = [str(root), "none", "p2b-nuscenes1-u", "--checkpoints", str(shipped)]
-    assert script.main(argv) == 0
-    assert (shipped / "p2b-nuscenes1-u.safetensors").read_bytes() == b"weights"
-    manifest = json.loads((shipped / "manifest.json").read_text())
-    assert list(manifest["files"]) == ["p2b-nuscenes1-u.safetensors"]
+    assert script.main([str(root), "none", "p2b-nuscenes1-u", *dirs]) == 0
+    source = root / "select-none" / "p2b-nuscenes1-u.safetensors"
+    assert (shipped / source.name).read_bytes() == source.read_bytes()
+    recipe = yaml.safe_load((recipes / "p2b-nuscenes1-u.yaml").read_text())
+    assert recipe["checkpoint"] == "p2b-nuscenes1-u" and recipe["commands"] == ["make it"]
+    assert "written_by" not in recipe["provenance"]
 
 
 def test_table4_names_a_folder_without_one_report(tmp_path):

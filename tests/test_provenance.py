@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import re
 import warnings
 from pathlib import Path
 from types import SimpleNamespace
@@ -17,6 +18,7 @@ import torch
 import yaml
 
 import trackers
+from envs.data.settings import SETTINGS
 from envs.metrics import OPEAccumulator
 from trackers.provenance import (
     UNKNOWN,
@@ -167,10 +169,10 @@ def test_every_shipped_file_has_a_recipe_and_its_provenance():
         assert Provenance.from_dict(recorded) == Provenance.from_dict(
             recipes[name]["provenance"]
         ), name
-        setting = "kitti-2" if "kitti2" in name else "kitti-1"
-        assert prov.setting == setting
+        setting = re.search(r"-(kitti|nuscenes)([12])-", name).expand(r"\1-\2")
+        assert prov.setting == setting, name
         categories = prov.trained_categories()  # every shipped lineage is known to its start
-        assert categories is not None and ("Car" not in categories) == (setting == "kitti-1")
+        assert categories is not None and set(categories) == set(SETTINGS[setting].observed)
 
 
 def test_backfill_changed_only_the_provenance_key():
