@@ -302,3 +302,12 @@ def test_results_markdown_cells_carry_intervals_and_skip_the_unseen_category():
         "| `p2b-kitti1-u` | 44.9 [34.6, 55.2] / 60.2 | 40.5 [31.8, 49.3] / 49.1 "
         "| 41.6 / 39.6 / 40.3 | 28.0 [19.6, 39.6] / 43.4 |"
     )
+
+
+def test_search_coverage_flags_centres_outside_the_previous_crop():
+    script = _script("search_coverage")
+    # a 4 x 2 m box heading along +y: its crop reaches 1.25 * 4 / 2 + 2 = 4.5 m along, 3.25 across
+    centres = np.array([[0.0, 0.0], [0.0, 4.4], [3.3, 4.4], [3.3, 4.4]])
+    yaw = np.full(4, np.pi / 2)
+    flags = script.outside(centres, yaw, np.full(4, 4.0), np.full(4, 2.0))
+    assert flags.tolist() == [False, True, False]
