@@ -72,10 +72,7 @@ from training.config import TrainConfig
 from training.losses import pooled_objective
 from training.provenance import train_provenance
 from training.rundir import (
-    TRAIN_LAYOUT,
-    RunDirError,
     atomic_write_text,
-    prepare_run_dir,
     remove_stale_temps,
     truncate_log,
 )
@@ -85,6 +82,8 @@ from training.train_setup import (
     SAMPLE_RECIPE_KEYS,
     TrainingError,
     architecture_config,
+    check_device,
+    check_run_dir,
     default_model_factory,
     default_train_data,
     default_val_fn,
@@ -676,29 +675,6 @@ def _yaml(values: dict[str, Any]) -> str:
     import yaml
 
     return yaml.safe_dump(values, sort_keys=False)
-
-
-def check_run_dir(out: str | Path, resume: bool) -> Path | None:
-    """Decide what a run into ``out`` does before anything is built: the ``last.pt`` to resume
-    from, or ``None`` for a run from the beginning (:func:`training.rundir.prepare_run_dir`
-    with :data:`~training.rundir.TRAIN_LAYOUT`: a fresh run refuses a directory holding a run,
-    ``resume=True`` one holding nothing, and a directory killed in its first epoch (a
-    ``config.yaml``, no ``last.pt``) starts again). Raises :class:`TrainingError`."""
-    try:
-        return prepare_run_dir(out, TRAIN_LAYOUT, resume=resume)
-    except RunDirError as exc:
-        raise TrainingError(str(exc)) from None
-
-
-def check_device(device: str) -> None:
-    """Refuse a CUDA device when CUDA is unavailable or the index does not exist."""
-    if not device.startswith("cuda"):
-        return
-    if not torch.cuda.is_available():
-        raise TrainingError(f"device {device!r}: CUDA is not available on this machine")
-    index, count = torch.device(device).index, torch.cuda.device_count()
-    if index is not None and index >= count:
-        raise TrainingError(f"device {device!r}: only {count} CUDA device(s) here")
 
 
 def train(

@@ -1,7 +1,8 @@
 """What a training run is built from when the caller gives nothing else: the tracker
 (:func:`default_model_factory`), the training samples (:func:`default_train_data`, by the
 tracker's sample recipe) and the validation function (:func:`default_val_fn`: OPE on the val
-split, observed categories only); and :class:`TrainingError`. Used by
+split, observed categories only); the checks a run passes before anything is built
+(:func:`check_run_dir`, :func:`check_device`); and :class:`TrainingError`. Used by
 :class:`training.pretrain.Trainer`, which re-exports these names.
 """
 
@@ -10,18 +11,22 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
 from training.config import TrainConfig
+from training.rundir import TRAIN_LAYOUT, RunDirError, prepare_run_dir
 
 __all__ = [
     "LOSS_ONLY_HEAD_FIELDS",
     "SAMPLE_RECIPE_KEYS",
     "TrainingError",
     "architecture_config",
+    "check_device",
+    "check_run_dir",
     "default_model_factory",
     "default_train_data",
     "default_val_fn",
@@ -211,3 +216,26 @@ def _summarise_report(report: dict[str, Any]) -> dict[str, float]:
         "success": float(report["mean"]["success"]),
         "precision": float(report["mean"]["precision"]),
     }
+
+
+def check_run_dir(out: str | Path, resume: bool) -> Path | None:
+    """Decide what a run into ``out`` does before anything is built: the ``last.pt`` to resume
+    from, or ``None`` for a run from the beginning (:func:`training.rundir.prepare_run_dir`
+    with :data:`~training.rundir.TRAIN_LAYOUT`: a fresh run refuses a directory holding a run,
+    ``resume=True`` one holding nothing, and a directory killed in its first epoch (a
+    ``config.yaml``, no ``last.pt``) starts again). Raises :class:`TrainingError`."""
+    try:
+        return prepare_run_dir(out, TRAIN_LAYOUT, resume=resume)
+    except RunDirError as exc:
+        raise TrainingError(str(exc)) from None
+
+
+def check_device(device: str) -> None:
+    """Refuse a CUDA device when CUDA is unavailable or the index does not exist."""
+    if not device.startswith("cuda"):
+        return
+    if not torch.cuda.is_available():
+        raise TrainingError(f"device {device!r}: CUDA is not available on this machine")
+    index, count = torch.device(device).index, torch.cuda.device_count()
+    if index is not None and index >= count:
+        raise TrainingError(f"device {device!r}: only {count} CUDA device(s) here")
