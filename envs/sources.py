@@ -33,6 +33,7 @@ SOURCE_KEYWORDS = (
     "version",
     "cache_dir",
     "allow_missing_scenes",
+    "frame",
 )
 """The keywords of :func:`open_dataset` that describe a named source."""
 
@@ -54,6 +55,7 @@ def open_dataset(
     version: str | None = None,
     cache_dir: str | os.PathLike | None = None,
     allow_missing_scenes: bool = False,
+    frame: str | None = None,
 ) -> KittiTracking | NuScenesTracking:
     """The tracklets of ``split`` of a named source, of ``categories`` (``None``: all).
 
@@ -66,11 +68,16 @@ def open_dataset(
             default ``v1.0-mini``).
         allow_missing_scenes: KITTI layouts only: skip the scenes of ``split`` whose files are
             missing (see :class:`envs.data.KittiTracking`).
+        frame: nuScenes layouts only: the LiDAR frame scans and boxes are served in,
+            ``"lidar"`` (default: each key frame's own) or ``"scene"`` (the scene's first key
+            frame's: ego motion removed); see :mod:`envs.data.nuscenes`.
     """
     if source not in SOURCES:
         raise ValueError(f"unknown source {source!r}; valid: {list(SOURCES)} or a dataset")
     if allow_missing_scenes and source == "nuscenes":
         raise ValueError("allow_missing_scenes applies to KITTI layouts, not to nuscenes")
+    if frame is not None and source != "nuscenes":
+        raise ValueError(f"frame={frame!r} applies to the nuscenes source, not to {source!r}")
     if source == "nuscenes":
         if root is None:
             if preset is None:
@@ -80,7 +87,9 @@ def open_dataset(
                 )
             version = version or DEFAULT_VERSION
             root = ensure_nuscenes_world(preset, sensor or "hdl32", seed, version, cache_dir)
-        return NuScenesTracking(str(root), version or "v1.0-trainval", split, categories)
+        return NuScenesTracking(
+            str(root), version or "v1.0-trainval", split, categories, frame=frame or "lidar"
+        )
     if source == "synthetic" and root is None:
         root = ensure_world(
             preset=preset or "small", sensor=sensor or "hdl64", seed=seed, cache_dir=cache_dir

@@ -209,7 +209,9 @@ class TrackingEnv(gym.Env):
         self.sampling, self.template_mode = options.sampling, options.template_mode
         self.search_enlargement, self.reference = options.search_enlargement, options.reference
         self.max_action = a_max = np.array(options.max_action, dtype=np.float64)
-        self.render_mode, self.scan_transform = options.render_mode, options.scan_transform
+        self.render_mode, self.scan_transform = options.render_mode, None
+        self._check_scan_transform(options.scan_transform)
+        self.scan_transform = options.scan_transform
         self.corridor_m, self.cell_m = options.corridor_m, options.cell_m
         self.cache_mb = options.cache_mb
         self._schedule = EpisodeSchedule(self.tracklets, options)
@@ -289,12 +291,24 @@ class TrackingEnv(gym.Env):
         """Install (or remove, ``None``) the whole-scan transform and drop the scan cache, so no
         scan made under the previous transform is served again. Crops already taken in the
         current episode (its templates) stay; install before ``reset`` for clean episodes."""
-        if transform is not None and not callable(transform):
-            raise TypeError(f"scan_transform must be callable; got {type(transform).__name__}")
+        self._check_scan_transform(transform)
         self.scan_transform = transform
         self._crop_cache.clear(transform)
         if self._tracklet is not None:
             self._entry = self._scans(self._index)
+
+    def _check_scan_transform(self, transform: ScanTransform | None) -> None:
+        if transform is None:
+            return
+        if not callable(transform):
+            raise TypeError(f"scan_transform must be callable; got {type(transform).__name__}")
+        frame = getattr(self.dataset, "frame", "lidar")
+        if frame != "lidar":  # the weather models range from a sensor at the origin
+            raise ValueError(
+                f"scan_transform on nuScenes data served in the {frame!r} frame: the weather "
+                "(and any range-dependent transform) needs each scan in its own LiDAR frame; "
+                "open the data with frame='lidar'"
+            )
 
     def clone(self) -> TrackingEnv:
         """A fresh copy of this env sharing its (read-only) dataset and tracklets, with its own

@@ -3,9 +3,10 @@
 For each pair of consecutive frames of a tracklet, the target's new centre, in the previous box's
 heading frame, lies outside the env's search crop (half sizes ``scale * l / 2 + offset_m`` and
 ``scale * w / 2 + offset_m``, the default ``search_enlargement`` (1.25, 2.0)) or not. Printed
-per category: the share outside, in the frame the env serves (each frame's LiDAR frame: ego
-motion included) and, for a nuScenes-layout root, in the global frame of the annotation table
-(ego motion removed, as Open3DSOT's nuScenes loader does).
+per category: the share outside, in the frame the env serves by default (each frame's LiDAR frame:
+ego motion included) and, for a nuScenes-layout root, in the reader's ``"scene"`` frame (ego
+motion removed: the global frame Open3DSOT's nuScenes loader tracks in, up to one rigid map per
+scene; ``--nuscenes-frame scene`` of train / eval / select).
 
     python experiments/search_coverage.py --dataset nuscenes --preset default-km --sensor hdl32 \\
         --split train --setting nuscenes-1
@@ -14,7 +15,6 @@ motion included) and, for a nuScenes-layout root, in the global frame of the ann
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import defaultdict
 from pathlib import Path
@@ -40,35 +40,13 @@ def outside(
     )
 
 
-def lidar_frame_shares(tracklets) -> dict[str, list[np.ndarray]]:
+def crop_exits(tracklets) -> dict[str, list[np.ndarray]]:
     """Per category, the outside flags of every tracklet, boxes ``(x, y, z, l, w, h, yaw)``."""
     flags = defaultdict(list)
     for tr in tracklets:
         b = tr.boxes
         if len(b) > 1:
             flags[tr.category].append(outside(b[:, :2], b[:, 6], b[:, 3], b[:, 4]))
-    return flags
-
-
-def global_frame_shares(
-    table_dir: Path, annotation_tokens: list[tuple[str, ...]], categories: list[str]
-) -> dict[str, list[np.ndarray]]:
-    """The same from the global boxes of a nuScenes ``sample_annotation`` table (size ``(w, l,
-    h)``, rotation ``(w, x, y, z)``): per tracklet its frames' annotation tokens and category."""
-    rows = json.loads((table_dir / "sample_annotation.json").read_text())
-    annotations = {a["token"]: a for a in rows}
-    flags = defaultdict(list)
-    for tokens, category in zip(annotation_tokens, categories, strict=True):
-        chain = [annotations[t] for t in tokens]
-        if len(chain) < 2:
-            continue
-        q = np.array([a["rotation"] for a in chain])
-        yaw = np.arctan2(
-            2 * (q[:, 0] * q[:, 3] + q[:, 1] * q[:, 2]), 1 - 2 * (q[:, 2] ** 2 + q[:, 3] ** 2)
-        )
-        size = np.array([a["size"] for a in chain])
-        centres = np.array([a["translation"][:2] for a in chain])
-        flags[category].append(outside(centres, yaw, size[:, 1], size[:, 0]))
     return flags
 
 
@@ -90,33 +68,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--setting", default="kitti-1")
     args = parser.parse_args(argv)
     sensor = args.sensor or ("hdl32" if args.dataset == "nuscenes" else "hdl64")
-    if args.dataset == "nuscenes":
-        from envs.data.nuscenes import SOT_SPLITS, NuScenesTracking
-        from envs.data.settings import get_setting
-        from envs.synthetic.nuscenes_layout import DEFAULT_VERSION, ensure_nuscenes_world
-
-        root = ensure_nuscenes_world(args.preset, sensor, args.world_seed, DEFAULT_VERSION)
-        categories = list(get_setting(args.setting).observed)
-        data = NuScenesTracking(root, DEFAULT_VERSION, SOT_SPLITS[args.split], categories)
-        tracklets = data.tracklets
-    else:
+    frames = ("lidar", "scene") if args.dataset == "nuscenes" else ("lidar",)
+    for frame in frames:
         tracklets, _, root = load_tracklets(
-            "synthetic",
+            args.dataset,
             args.split,
             setting=args.setting,
             preset=args.preset,
             sensor=sensor,
             world_seed=args.world_seed,
+            nuscenes_frame=frame,
         )
-    print(f"{root}, {args.split}, {args.setting} observed: outside the previous box's search crop")
-    print(f"  LiDAR frame (what the env serves): {summary(lidar_frame_shares(tracklets))}")
-    if args.dataset == "nuscenes":
-        flags = global_frame_shares(
-            Path(root) / DEFAULT_VERSION,
-            data.annotation_tokens,
-            [tr.category for tr in tracklets],
-        )
-        print(f"  global frame (ego motion removed): {summary(flags)}")
+        if frame == "lidar":
+            print(f"{root}, {args.split}, {args.setting} observed: outside the search crop")
+        where = {"lidar": "LiDAR frame (the default)", "scene": "scene frame (ego motion removed)"}
+        print(f"  {where[frame]}: {summary(crop_exits(tracklets))}")
     return 0
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import trackers
+from envs.data.nuscenes import NUSCENES_FRAMES
 from envs.data.settings import check_setting_layout
 from envs.observation import SEARCH_OFFSET_M, SEARCH_SCALE
 from trackers.registry import default_env_options
@@ -126,6 +127,9 @@ class TrainConfig:
     # dataset=nuscenes: table folder (default v1.0-trainval under data_root, else v1.0-mini: the
     # synthetic world written in nuScenes layout)
     nuscenes_version: str | None = None
+    # dataset=nuscenes: the LiDAR frame served, lidar (each key frame's own) | scene (the scene's
+    # first key frame's: ego motion removed, as Open3DSOT's global frame; envs.data.nuscenes)
+    nuscenes_frame: str = "lidar"
     setting: str | None = "kitti-1"  # class-agnostic setting (observed categories are trained)
     category: str | None = None  # class-specific mode: train on this one category instead
     candidates_per_frame: int = 4
@@ -220,6 +224,10 @@ class TrainConfig:
             bad("dataset", f"must be one of {', '.join(DATASETS)}")
         if self.dataset == "kitti" and not self.data_root:
             bad("data_root", "dataset=kitti needs data_root (the KITTI tracking root)")
+        if self.nuscenes_frame not in NUSCENES_FRAMES:
+            bad("nuscenes_frame", f"must be one of {', '.join(NUSCENES_FRAMES)}")
+        elif self.nuscenes_frame != "lidar" and self.dataset != "nuscenes":
+            bad("nuscenes_frame", f"applies to dataset=nuscenes, not {self.dataset!r}")
         if self.setting is None and self.category is None:
             bad("setting", "give a setting (class-agnostic) or a category (class-specific)")
         elif self.setting is not None and self.dataset in DATASETS:

@@ -168,6 +168,11 @@ def finetune_provenance(cfg: Any, steps: int, parent: dict[str, Any]) -> Provena
     )
 
 
+def _frame_entry(frame: str) -> dict[str, str]:
+    """A nuScenes frame other than the default, as a record entry (earlier records unchanged)."""
+    return {} if frame == "lidar" else {"nuscenes_frame": frame}
+
+
 def selection_round(config: Any, rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """One ``select`` round as provenance records it: the rule, the setting and world, the
     parts, the eval seed and every candidate's pooled observed Success (``config``: a
@@ -176,6 +181,7 @@ def selection_round(config: Any, rows: Sequence[Mapping[str, Any]]) -> dict[str,
         "rule": SELECTION_RULE,
         "setting": config.setting,
         "dataset": config.dataset,
+        **_frame_entry(getattr(config, "nuscenes_frame", "lidar")),
         "preset": config.preset,
         "sensor": config.sensor,
         "parts": [str(p) for p in config.parts],

@@ -391,13 +391,15 @@ def load_tracklets(
     data_root: str | None = None,
     trained_only: bool = True,
     version: str | None = None,
+    nuscenes_frame: str = "lidar",
 ):
     """Tracklets of a split: the observed categories of ``setting`` (class-agnostic) or the one
     ``category`` (class-specific); ``trained_only=False`` keeps the unseen ones too (validation).
 
     ``dataset="nuscenes"`` reads the nuScenes layout (``data_root``, or the synthetic world in
     that layout) with ``split`` a role mapped by ``envs.data.nuscenes.SOT_SPLITS`` and
-    ``version`` the table folder.
+    ``version`` the table folder and ``nuscenes_frame`` the LiDAR frame served (``"lidar"`` or
+    ``"scene"``, :class:`envs.data.nuscenes.NuScenesTracking`); other datasets refuse ``"scene"``.
 
     Returns ``(tracklets, categories, root)``; raises ``ValueError`` when none are found.
     """
@@ -407,6 +409,8 @@ def load_tracklets(
     st = class_specific(category) if category else get_setting(setting)
     check_setting_layout(st, "nuscenes" if dataset == "nuscenes" else "kitti")
     cats = st.observed if trained_only else st.categories
+    if nuscenes_frame != "lidar" and dataset != "nuscenes":
+        raise ValueError(f"nuscenes_frame={nuscenes_frame!r} applies to dataset nuscenes only")
     if dataset == "nuscenes":
         from envs.data.nuscenes import SOT_SPLITS, NuScenesTracking
 
@@ -417,7 +421,7 @@ def load_tracklets(
 
             version = version or DEFAULT_VERSION
             root = str(ensure_nuscenes_world(preset, sensor, world_seed, version))
-        data = NuScenesTracking(root, version, SOT_SPLITS[split], list(cats))
+        data = NuScenesTracking(root, version, SOT_SPLITS[split], list(cats), frame=nuscenes_frame)
     elif data_root:
         root = data_root
     elif dataset == "synthetic":

@@ -108,6 +108,8 @@ class SelectionConfig:
         preset, sensor: the synthetic worlds (see ``envs.synthetic``).
         dataset: ``"synthetic"`` (KITTI layout) or ``"nuscenes"`` (the same worlds written in
             nuScenes layout; a part's split is a role, see ``envs.data.nuscenes.SOT_SPLITS``).
+        nuscenes_frame: with ``dataset="nuscenes"``, the LiDAR frame served (``"lidar"`` or
+            ``"scene"``, :class:`envs.data.nuscenes.NuScenesTracking`).
         parts: the world splits pooled into one score.
         train_world_seed: the world the candidates were trained on (guards its train/test).
         eval_seed: seed of the point resampling (``training.evaluate.evaluate``).
@@ -127,11 +129,18 @@ class SelectionConfig:
     num_envs: int = 1
     dataset: str = "synthetic"
     workers: int | None = 1
+    nuscenes_frame: str = "lidar"
 
     def __post_init__(self) -> None:
         check_parts(self.parts, self.train_world_seed)
         if self.dataset not in ("synthetic", "nuscenes"):
             raise ValueError(f"dataset must be 'synthetic' or 'nuscenes', got {self.dataset!r}")
+        if self.nuscenes_frame not in ("lidar", "scene"):
+            raise ValueError(
+                f"nuscenes_frame must be 'lidar' or 'scene', got {self.nuscenes_frame!r}"
+            )
+        if self.nuscenes_frame != "lidar" and self.dataset != "nuscenes":
+            raise ValueError(f"nuscenes_frame={self.nuscenes_frame!r} needs dataset='nuscenes'")
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
         if self.num_envs > 1 and self.workers != 1:
@@ -276,6 +285,8 @@ def score_candidates(
             }
             if config.dataset != "synthetic":  # keys of earlier (synthetic) caches unchanged
                 key["dataset"] = config.dataset
+            if config.nuscenes_frame != "lidar":  # likewise
+                key["nuscenes_frame"] = config.nuscenes_frame
             if options[candidate]:  # likewise: only a candidate that records options
                 key["env_options"] = json_safe(options[candidate])
             path = _cache_path(cache, part, candidate, digests[candidate]) if cache else None
@@ -292,6 +303,7 @@ def score_candidates(
                         sensor=config.sensor,
                         seed=part.world_seed,
                         split=SOT_SPLITS[part.split],
+                        frame=config.nuscenes_frame,
                         setting=config.setting,
                         categories=observed,
                         **env_kwargs[candidate],

@@ -99,6 +99,7 @@ def _config_tracklets(cfg: TrainConfig, split: str) -> tuple[list, str]:
         world_seed=cfg.world_seed,
         data_root=cfg.data_root,
         version=cfg.nuscenes_version,
+        nuscenes_frame=cfg.nuscenes_frame,
     )
     return tracklets, root
 

@@ -19,6 +19,14 @@ LiDAR frame by ``R_cs^T (R_ego^T (p - t_ego) - t_cs)`` — the transform of the 
 ``(x, y, z, l, w, h, yaw)`` like the KITTI loader's. Real nuScenes LiDAR frames have x to the
 right and y forward (the KITTI one: x forward); nothing downstream depends on the axis names.
 
+Which LiDAR frame (``frame``, :data:`NUSCENES_FRAMES`): ``"lidar"`` (the default) serves each key
+frame's scan and boxes in that key frame's own LiDAR frame, as the devkit does, so the ego's
+motion between the 2 Hz key frames moves every target; ``"scene"`` serves all key frames of a
+scene in the LiDAR frame of its first key frame (ego motion removed, the sensor of frame 0 at
+the origin): up to one rigid map per scene, the global frame Open3DSOT's nuScenes loader tracks
+in. Range-dependent scan transforms (the weather) assume the sensor at the origin and are
+refused on ``"scene"`` data (``TrackingEnv``).
+
 Tracklets. One per annotated instance of a wanted category in the scenes of the split, over the
 instance's key frames in time order; ``frames`` are the key-frame (sample) indices in the scene,
 so an instance missing from some samples keeps one tracklet with a gap, as in the KITTI loader.
@@ -37,13 +45,18 @@ from pathlib import Path
 import numpy as np
 
 from envs.data.kitti import NonFinitePointsWarning
+from envs.data.nuscenes_poses import (
+    global_to_lidar_boxes,
+    lidar_to_reference,
+    quaternion_to_matrix,
+)
 from envs.data.tracklet import ScanCache, Tracklet, check_categories
-from envs.geometry import wrap_yaw
 
 __all__ = [
     "CATEGORY_MAP",
     "LIDAR_CHANNEL",
     "NUSCENES_CATEGORIES",
+    "NUSCENES_FRAMES",
     "POINT_FIELDS",
     "TABLES",
     "SOT_SPLITS",
@@ -69,6 +82,8 @@ TABLES: tuple[str, ...] = (
 )
 
 LIDAR_CHANNEL = "LIDAR_TOP"
+NUSCENES_FRAMES: tuple[str, ...] = ("lidar", "scene")
+"""The frames :class:`NuScenesTracking` serves scans and boxes in (module docstring)."""
 POINT_FIELDS = 5  # x, y, z, intensity, ring index (float32 each)
 
 # nuScenes category -> the project's category names (those of envs.data.settings). This is the
@@ -129,72 +144,6 @@ def split_scenes(split: str) -> tuple[str, ...] | None:
     return splits[split]
 
 
-# --------------------------------------------------------------------------- maths
-
-
-def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of quaternions ``(..., 4)`` in nuScenes order ``(w, x, y, z)``.
-
-    The quaternions are normalised first (as pyquaternion does); returns ``(..., 3, 3)``
-    float64. A zero quaternion gives NaNs (callers check the norms and name the record).
-    """
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - w * z)
-    out[..., 0, 2] = 2 * (x * z + w * y)
-    out[..., 1, 0] = 2 * (x * y + w * z)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - w * x)
-    out[..., 2, 0] = 2 * (x * z - w * y)
-    out[..., 2, 1] = 2 * (y * z + w * x)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
-
-
-def global_to_lidar_boxes(
-    translation: np.ndarray,
-    size_wlh: np.ndarray,
-    rotation: np.ndarray,
-    ego_t: np.ndarray,
-    ego_q: np.ndarray,
-    cs_t: np.ndarray,
-    cs_q: np.ndarray,
-) -> np.ndarray:
-    """Global nuScenes boxes -> LiDAR-frame boxes, vectorised over ``N`` annotations.
-
-    Args:
-        translation: ``(N, 3)`` global box centres, metres.
-        size_wlh: ``(N, 3)`` sizes in nuScenes order ``(w, l, h)``, metres.
-        rotation: ``(N, 4)`` global box quaternions ``(w, x, y, z)``.
-        ego_t: ``(N, 3)`` ego position (body -> global) at each box's key frame, metres.
-        ego_q: ``(N, 4)`` ego rotation (body -> global) at that frame, ``(w, x, y, z)``.
-        cs_t: ``(N, 3)`` sensor calibration translation (LiDAR -> body) of that frame, metres.
-        cs_q: ``(N, 4)`` sensor calibration rotation (LiDAR -> body), ``(w, x, y, z)``.
-
-    Returns:
-        ``(N, 7)`` float64 ``(x, y, z, l, w, h, yaw)`` in the LiDAR frame, yaw in ``[-pi, pi)``.
-    """
-    r_ego = quaternion_to_matrix(ego_q)
-    r_cs = quaternion_to_matrix(cs_q)
-    r_box = quaternion_to_matrix(rotation)
-    d = np.asarray(translation, np.float64) - ego_t
-    in_ego = np.einsum("nji,nj->ni", r_ego, d) - cs_t  # R_ego^T d - t_cs
-    centre = np.einsum("nji,nj->ni", r_cs, in_ego)  # R_cs^T (...)
-    # Heading (first column) of R_cs^T R_ego^T R_box.
-    heading = np.einsum("nji,nj->ni", r_cs, np.einsum("nji,nj->ni", r_ego, r_box[:, :, 0]))
-    size = np.asarray(size_wlh, np.float64)
-    out = np.empty((len(centre), 7))
-    out[:, :3] = centre
-    out[:, 3] = size[:, 1]
-    out[:, 4] = size[:, 0]
-    out[:, 5] = size[:, 2]
-    out[:, 6] = wrap_yaw(np.arctan2(heading[:, 1], heading[:, 0]))
-    return out
-
-
 # --------------------------------------------------------------------------- scans
 
 
@@ -238,12 +187,27 @@ class NuScenesScans:
         root: the dataroot.
         scene: scene name (quoted in errors).
         filenames: the ``LIDAR_TOP`` sample_data filename of each key frame, relative to root.
+        to_reference: ``None`` (each scan in its own LiDAR frame) or ``(T, 3, 4)`` maps
+            ``[R | t]`` of the key frames into one reference frame
+            (:func:`~envs.data.nuscenes_poses.lidar_to_reference`), applied in float64.
     """
 
-    def __init__(self, root: str | Path, scene: str, filenames: Sequence[str]) -> None:
+    def __init__(
+        self,
+        root: str | Path,
+        scene: str,
+        filenames: Sequence[str],
+        to_reference: np.ndarray | None = None,
+    ) -> None:
         self.root = Path(root)
         self.scene = scene
         self.filenames = tuple(filenames)
+        if to_reference is not None and np.shape(to_reference) != (len(self.filenames), 3, 4):
+            raise ValueError(
+                f"nuScenes scene {scene}: to_reference has shape {np.shape(to_reference)}, "
+                f"expected ({len(self.filenames)}, 3, 4)"
+            )
+        self.to_reference = to_reference
 
     def __call__(self, frame: int) -> np.ndarray:
         if not 0 <= int(frame) < len(self.filenames):
@@ -253,9 +217,13 @@ class NuScenesScans:
             )
         path = self.root / self.filenames[int(frame)]
         try:
-            return read_pcd_bin(path)
+            points = read_pcd_bin(path)
         except (FileNotFoundError, ValueError) as exc:
             raise type(exc)(f"nuScenes scene {self.scene} key frame {int(frame)}: {exc}") from None
+        if self.to_reference is not None:
+            m = self.to_reference[int(frame)]
+            points[:, :3] = points[:, :3].astype(np.float64) @ m[:, :3].T + m[:, 3]
+        return points
 
     def __repr__(self) -> str:
         return f"NuScenesScans({str(self.root)!r}, {self.scene!r}, {len(self.filenames)} frames)"
@@ -335,6 +303,60 @@ def _check_quaternions(q: np.ndarray, table: _Table, rows: np.ndarray) -> None:
         )
 
 
+def _floats(table: _Table, key: str, idx: np.ndarray, width: int) -> np.ndarray:
+    """``(len(idx), width)`` float64 of field ``key`` of records ``idx``; a record whose field is
+    not ``width`` finite numbers raises naming it."""
+    values = table.column(key, idx)
+    try:
+        arr = np.array(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = None
+    if arr is not None and arr.shape == (len(idx), width) and np.isfinite(arr).all():
+        return arr
+    for i, v in zip(idx, values, strict=True):  # slow path: name the bad record
+        try:
+            ok = np.shape(v) == (width,) and bool(np.isfinite(np.array(v, float)).all())
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(
+                f"nuScenes table {table.path}: record {table.records[int(i)]['token']!r} "
+                f"field {key!r} must be {width} finite numbers, got {v!r}"
+            )
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _poses(
+    t: dict[str, _Table], sd_rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The ego pose ``(t, q)`` and sensor calibration ``(t, q)`` of each sample_data row, each
+    pose record converted once: ``(N, 3)``, ``(N, 4)``, ``(N, 3)``, ``(N, 4)``."""
+    sd = t["sample_data"]
+
+    def record_rows(table: str, key: str) -> np.ndarray:
+        return np.array(
+            [
+                t[table].find(
+                    sd.records[int(j)][key], f"sample_data {sd.records[int(j)]['token']!r}"
+                )
+                for j in sd_rows
+            ],
+            np.int64,
+        )
+
+    ego_u, ego_inv = np.unique(record_rows("ego_pose", "ego_pose_token"), return_inverse=True)
+    cs_u, cs_inv = np.unique(
+        record_rows("calibrated_sensor", "calibrated_sensor_token"), return_inverse=True
+    )
+    ego_t = _floats(t["ego_pose"], "translation", ego_u, 3)
+    ego_q = _floats(t["ego_pose"], "rotation", ego_u, 4)
+    cs_t = _floats(t["calibrated_sensor"], "translation", cs_u, 3)
+    cs_q = _floats(t["calibrated_sensor"], "rotation", cs_u, 4)
+    _check_quaternions(ego_q, t["ego_pose"], ego_u)
+    _check_quaternions(cs_q, t["calibrated_sensor"], cs_u)
+    return ego_t[ego_inv], ego_q[ego_inv], cs_t[cs_inv], cs_q[cs_inv]
+
+
 class NuScenesTracking:
     """Tracklets of the nuScenes v1.0 layout (real or synthetic), read without the devkit.
 
@@ -350,19 +372,21 @@ class NuScenesTracking:
         categories: project category names (see :data:`CATEGORY_MAP`), one name, or ``None`` for
             every mapped category.
         cache_size: scans kept per scene.
+        frame: ``"lidar"`` (each key frame's own LiDAR frame) or ``"scene"`` (the LiDAR frame of
+            the scene's first key frame: ego motion removed); see the module docstring.
 
     Attributes:
         tracklets: ordered by scene (split order), then instance (by first key frame, then
             instance table order); ``track_id`` numbers them within the scene.
         instance_tokens: the nuScenes instance token of each tracklet.
         annotation_tokens: per tracklet, the sample_annotation token of each frame.
-        scenes: scene names read; root, version, split, categories.
+        scenes: scene names read; root, version, split, categories, frame.
 
     Raises:
         FileNotFoundError: a missing version folder (the message lists those found) or table.
         KeyError: a dangling token (names the referring record and the table).
-        ValueError: an unknown split or category (lists the valid ones), or a split naming none
-            of the version's scenes.
+        ValueError: an unknown split, category or frame (lists the valid ones), or a split naming
+            none of the version's scenes.
     """
 
     def __init__(
@@ -373,10 +397,14 @@ class NuScenesTracking:
         categories: str | Sequence[str] | None = None,
         *,
         cache_size: int = 8,
+        frame: str = "lidar",
     ) -> None:
+        if frame not in NUSCENES_FRAMES:
+            raise ValueError(f"nuScenes frame {frame!r} is not one of {list(NUSCENES_FRAMES)}")
         self.root = Path(root)
         self.version = version
         self.split = split
+        self.frame = frame
         self.categories = check_categories(categories, NUSCENES_CATEGORIES, "nuScenes")
         wanted_scenes = split_scenes(split)
         table_dir = self.root / version
@@ -484,7 +512,9 @@ class NuScenesTracking:
                 f"{anns.records[int(rows[k + 1])]['sample_token']!r} ({anns.path})"
             )
 
-        boxes = self._boxes(t, rows, ann_sample[rows], lidar_sd)
+        first_sample = np.array([chain[0] if chain else -1 for chain in scene_samples], np.int64)
+        pose_samples = ann_sample[rows] if frame == "lidar" else first_sample[scene_of]
+        boxes = self._boxes(t, rows, lidar_sd[pose_samples])
         starts = np.concatenate([[0], np.flatnonzero(~same) + 1, [len(rows)]])
         caches: dict[int, ScanCache] = {}
         sd = t["sample_data"].records
@@ -493,8 +523,10 @@ class NuScenesTracking:
             k = int(scene_of[a])
             name = self.scenes[k]
             if k not in caches:
-                files = [sd[int(lidar_sd[i])]["filename"] for i in scene_samples[k]]
-                caches[k] = ScanCache(NuScenesScans(self.root, name, files), cache_size)
+                sd_rows = lidar_sd[scene_samples[k]]
+                files = [sd[int(j)]["filename"] for j in sd_rows]
+                maps = None if frame == "lidar" else lidar_to_reference(*_poses(t, sd_rows))
+                caches[k] = ScanCache(NuScenesScans(self.root, name, files, maps), cache_size)
             track_id = track_in_scene.get(k, 0)
             track_in_scene[k] = track_id + 1
             inst = int(inst_of[a])
@@ -539,70 +571,15 @@ class NuScenesTracking:
         return out
 
     @staticmethod
-    def _boxes(
-        t: dict[str, _Table], rows: np.ndarray, samples: np.ndarray, lidar_sd: np.ndarray
-    ) -> np.ndarray:
-        """``(N, 7)`` LiDAR-frame boxes of annotation ``rows`` (one vectorised pass)."""
-        anns, sd = t["sample_annotation"], t["sample_data"]
-        sd_rows = lidar_sd[samples]
-        ego_rows = np.array(
-            [
-                t["ego_pose"].find(
-                    sd.records[int(j)]["ego_pose_token"],
-                    f"sample_data {sd.records[int(j)]['token']!r}",
-                )
-                for j in sd_rows
-            ],
-            np.int64,
-        )
-        cs_rows = np.array(
-            [
-                t["calibrated_sensor"].find(
-                    sd.records[int(j)]["calibrated_sensor_token"],
-                    f"sample_data {sd.records[int(j)]['token']!r}",
-                )
-                for j in sd_rows
-            ],
-            np.int64,
-        )
-
-        def floats(table: _Table, key: str, idx: np.ndarray, width: int) -> np.ndarray:
-            values = table.column(key, idx)
-            try:
-                arr = np.array(values, dtype=np.float64)
-            except (TypeError, ValueError):
-                arr = None
-            if arr is not None and arr.shape == (len(idx), width) and np.isfinite(arr).all():
-                return arr
-            for i, v in zip(idx, values, strict=True):  # slow path: name the bad record
-                try:
-                    ok = np.shape(v) == (width,) and bool(np.isfinite(np.array(v, float)).all())
-                except (TypeError, ValueError):
-                    ok = False
-                if not ok:
-                    raise ValueError(
-                        f"nuScenes table {table.path}: record "
-                        f"{table.records[int(i)]['token']!r} field {key!r} must be "
-                        f"{width} finite numbers, got {v!r}"
-                    )
-            raise AssertionError("unreachable")  # pragma: no cover
-
-        # Poses are shared by many annotations: convert each used pose record once.
-        ego_u, ego_inv = np.unique(ego_rows, return_inverse=True)
-        cs_u, cs_inv = np.unique(cs_rows, return_inverse=True)
-        ego_t = floats(t["ego_pose"], "translation", ego_u, 3)
-        ego_q = floats(t["ego_pose"], "rotation", ego_u, 4)
-        cs_t = floats(t["calibrated_sensor"], "translation", cs_u, 3)
-        cs_q = floats(t["calibrated_sensor"], "rotation", cs_u, 4)
-        _check_quaternions(ego_q, t["ego_pose"], ego_u)
-        _check_quaternions(cs_q, t["calibrated_sensor"], cs_u)
-        trans = floats(anns, "translation", rows, 3)
-        size = floats(anns, "size", rows, 3)
-        rot = floats(anns, "rotation", rows, 4)
+    def _boxes(t: dict[str, _Table], rows: np.ndarray, sd_rows: np.ndarray) -> np.ndarray:
+        """``(N, 7)`` boxes of annotation ``rows`` in the LiDAR frames of the key-frame
+        sample_data ``sd_rows`` (one per annotation; one vectorised pass)."""
+        anns = t["sample_annotation"]
+        trans = _floats(anns, "translation", rows, 3)
+        size = _floats(anns, "size", rows, 3)
+        rot = _floats(anns, "rotation", rows, 4)
         _check_quaternions(rot, anns, rows)
-        return global_to_lidar_boxes(
-            trans, size, rot, ego_t[ego_inv], ego_q[ego_inv], cs_t[cs_inv], cs_q[cs_inv]
-        )
+        return global_to_lidar_boxes(trans, size, rot, *_poses(t, sd_rows))
 
     def __len__(self) -> int:
         return len(self.tracklets)
@@ -610,6 +587,6 @@ class NuScenesTracking:
     def __repr__(self) -> str:
         return (
             f"NuScenesTracking({str(self.root)!r}, version={self.version!r}, "
-            f"split={self.split!r}, categories={self.categories!r}, "
+            f"split={self.split!r}, categories={self.categories!r}, frame={self.frame!r}, "
             f"tracklets={len(self.tracklets)})"
         )

@@ -135,6 +135,13 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         "v1.0-mini); --split train/val/test read train_track/train_detect/val",
     )
     parser.add_argument(
+        "--nuscenes-frame",
+        choices=("lidar", "scene"),
+        default=None,
+        help="--dataset nuscenes: scans and boxes in each key frame's LiDAR frame (lidar, "
+        "default) or in the scene's first key frame's, ego motion removed (scene)",
+    )
+    parser.add_argument(
         "--preset",
         default="small",
         help="synthetic preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
@@ -210,8 +217,13 @@ def build_env(args: argparse.Namespace, **overrides: Any):
     else:
         source = args.dataset
         kwargs.update(preset=args.preset, sensor=args.sensor, seed=args.seed)
+    frame = getattr(args, "nuscenes_frame", None)
     if source == "nuscenes":
-        kwargs.update(version=args.version, split=SOT_SPLITS[kwargs["split"]])
+        kwargs.update(version=args.version, split=SOT_SPLITS[kwargs["split"]], frame=frame)
+    elif frame is not None:
+        raise SystemExit(
+            f"pointtrack: --nuscenes-frame applies to --dataset nuscenes, not {source}"
+        )
     return make_tracking_env(source, **kwargs)
 
 

@@ -46,6 +46,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="the worlds in KITTI layout (synthetic) or written in nuScenes layout (nuscenes)",
     )
     parser.add_argument(
+        "--nuscenes-frame",
+        choices=("lidar", "scene"),
+        default="lidar",
+        help="--dataset nuscenes: each key frame's LiDAR frame (default) or the scene's first "
+        "key frame's, ego motion removed (scene)",
+    )
+    parser.add_argument(
         "--train-world",
         type=int,
         default=0,
@@ -118,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
             eval_seed=args.eval_seed,
             num_envs=args.num_envs,
             dataset=args.dataset,
+            nuscenes_frame=args.nuscenes_frame,
             workers=resolve_workers(workers, "--workers"),
         )
         out = Path(args.out) if args.out else None

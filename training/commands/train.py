@@ -61,6 +61,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "else v1.0-mini, the synthetic world in nuScenes layout)",
     )
     parser.add_argument(
+        "--nuscenes-frame",
+        dest="nuscenes_frame",
+        choices=("lidar", "scene"),
+        help="--dataset nuscenes: scans and boxes in each key frame's LiDAR frame (lidar, "
+        "default) or in the scene's first key frame's, ego motion removed (scene)",
+    )
+    parser.add_argument(
         "--drct",
         action="store_true",
         default=None,
