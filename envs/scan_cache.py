@@ -51,6 +51,7 @@ __all__ = [
     "GridStore",
     "ScanTransform",
     "TrackletScans",
+    "check_scan_transform",
     "crop_canonical",
 ]
 
@@ -58,6 +59,25 @@ ScanTransform = Callable[[np.ndarray, str, int], np.ndarray]
 """``scan_transform(points (N, 4) float32, tracklet_id, scene_frame) -> (N', 4) float32``: applied
 to the whole scan of a frame before any cropping (the weather hook). Must be picklable and
 deterministic given ``(tracklet_id, scene_frame)`` (corrupted scans are cached)."""
+
+
+def check_scan_transform(transform: ScanTransform | None, dataset: object) -> ScanTransform | None:
+    """``transform`` itself, once it is ``None`` or a callable the ``dataset``'s frame allows:
+    the weather models range from a sensor at the origin, so a dataset serving scans in another
+    frame than each scan's own LiDAR frame (nuScenes' ``frame="scene"``) refuses one."""
+    if transform is None:
+        return None
+    if not callable(transform):
+        raise TypeError(f"scan_transform must be callable; got {type(transform).__name__}")
+    frame = getattr(dataset, "frame", "lidar")
+    if frame != "lidar":
+        raise ValueError(
+            f"scan_transform on data served in the {frame!r} frame: the weather (and any "
+            "range-dependent transform) needs each scan in its own LiDAR frame; open the data "
+            "with frame='lidar'"
+        )
+    return transform
+
 
 CellRect = tuple[int, int, int, int]
 """``(x0, x1, y0, y1)``: an inclusive rectangle of grid cells."""

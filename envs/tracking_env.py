@@ -42,7 +42,13 @@ from envs.rewards import (
     make_reward,
     snap_iou,
 )
-from envs.scan_cache import CropCache, ScanTransform, TrackletScans, crop_canonical
+from envs.scan_cache import (
+    CropCache,
+    ScanTransform,
+    TrackletScans,
+    check_scan_transform,
+    crop_canonical,
+)
 from envs.sources import SOURCE_KEYWORDS, EnvData, open_dataset
 from envs.spec import (
     DEFAULT_SPLITS,
@@ -167,13 +173,10 @@ class TrackingEnv(gym.Env):
       ``pointtrack/NuScenes-v1``, the env as it stands; v0 at its last state behaves exactly
       the same. The ``-v0`` ids stay, as aliases that build the same env and warn (Gymnasium's
       ``DeprecationWarning``: "out of date").
-    - v0, 2026-12-03 (commit 4c81984): a reward callable is called as ``(pred, gt, prev_pred,
-      step, info)`` (before: ``(pred_box, gt_box)``); named rewards in :mod:`envs.rewards`; the
-      reset options and clips (``max_steps``: ``truncated``).
-    - v0, 2026-12-02 (commit fcd21bc): ``episode_seed``: an episode may draw its resampling
-      from a generator seeded by ``(episode_seed, tracklet id)``; ``training.evaluate`` sets it,
-      so every evaluation's numbers changed (no longer dependent on the episode order).
-    - v0, 2026-11-25 (commit 1255736): the first env.
+    - v0, 2026-12-03 (4c81984): reward callables take ``(pred, gt, prev_pred, step, info)``;
+      named rewards; reset options and clips. v0, 2026-12-02 (fcd21bc): ``episode_seed``.
+      v0, 2026-11-25 (1255736): the first env. Additions that change no existing agent's
+      observations or rewards, and the details: docs/env.md's version history.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
@@ -209,9 +212,8 @@ class TrackingEnv(gym.Env):
         self.sampling, self.template_mode = options.sampling, options.template_mode
         self.search_enlargement, self.reference = options.search_enlargement, options.reference
         self.max_action = a_max = np.array(options.max_action, dtype=np.float64)
-        self.render_mode, self.scan_transform = options.render_mode, None
-        self._check_scan_transform(options.scan_transform)
-        self.scan_transform = options.scan_transform
+        self.render_mode = options.render_mode
+        self.scan_transform = check_scan_transform(options.scan_transform, self.dataset)
         self.corridor_m, self.cell_m = options.corridor_m, options.cell_m
         self.cache_mb = options.cache_mb
         self._schedule = EpisodeSchedule(self.tracklets, options)
@@ -291,24 +293,10 @@ class TrackingEnv(gym.Env):
         """Install (or remove, ``None``) the whole-scan transform and drop the scan cache, so no
         scan made under the previous transform is served again. Crops already taken in the
         current episode (its templates) stay; install before ``reset`` for clean episodes."""
-        self._check_scan_transform(transform)
-        self.scan_transform = transform
+        self.scan_transform = check_scan_transform(transform, self.dataset)
         self._crop_cache.clear(transform)
         if self._tracklet is not None:
             self._entry = self._scans(self._index)
-
-    def _check_scan_transform(self, transform: ScanTransform | None) -> None:
-        if transform is None:
-            return
-        if not callable(transform):
-            raise TypeError(f"scan_transform must be callable; got {type(transform).__name__}")
-        frame = getattr(self.dataset, "frame", "lidar")
-        if frame != "lidar":  # the weather models range from a sensor at the origin
-            raise ValueError(
-                f"scan_transform on nuScenes data served in the {frame!r} frame: the weather "
-                "(and any range-dependent transform) needs each scan in its own LiDAR frame; "
-                "open the data with frame='lidar'"
-            )
 
     def clone(self) -> TrackingEnv:
         """A fresh copy of this env sharing its (read-only) dataset and tracklets, with its own
