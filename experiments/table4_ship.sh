@@ -5,8 +5,11 @@
 # baselines (and writes its recipe); then scripts/backfill_provenance.py records the recipes in
 # the files and the manifest. Resumable: a finished selection (its selection.json) is kept.
 #   bash experiments/table4_ship.sh [RUNS]   # RUNS holds table4-pilot, table4-pilot-nus1/-nus2
+#   bash experiments/table4_ship.sh RUNS scene   # the scene-frame nuScenes cells instead
+#                                                # (table4-pilot-nus1-scene, -nus2-scene)
 set -euo pipefail
 runs=${1:-runs}
+cells=${2:-lidar}
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 
 ship() {  # ROOT SETTING ARM NAME WORLD-FLAGS...
@@ -30,9 +33,22 @@ ship() {  # ROOT SETTING ARM NAME WORLD-FLAGS...
 }
 
 nus=(--dataset nuscenes --preset default-km --sensor hdl32)
-ship "$runs/table4-pilot" kitti-1 sam p2b-kitti1-s --dataset synthetic --preset small-km
-for n in 1 2; do
-  ship "$runs/table4-pilot-nus$n" "nuscenes-$n" none "p2b-nuscenes$n-u" "${nus[@]}"
-  ship "$runs/table4-pilot-nus$n" "nuscenes-$n" decorrelation "p2b-nuscenes$n-w" "${nus[@]}"
-done
+case $cells in
+  lidar)
+    ship "$runs/table4-pilot" kitti-1 sam p2b-kitti1-s --dataset synthetic --preset small-km
+    for n in 1 2; do
+      ship "$runs/table4-pilot-nus$n" "nuscenes-$n" none "p2b-nuscenes$n-u" "${nus[@]}"
+      ship "$runs/table4-pilot-nus$n" "nuscenes-$n" decorrelation "p2b-nuscenes$n-w" "${nus[@]}"
+    done ;;
+  scene)
+    for n in 1 2; do
+      if [ ! -d "$runs/table4-pilot-nus$n-scene" ]; then continue; fi
+      for arm in none decorrelation; do
+        suffix=$([ "$arm" = none ] && echo u || echo w)
+        ship "$runs/table4-pilot-nus$n-scene" "nuscenes-$n" "$arm" "p2b-nuscenes$n-$suffix" \
+          "${nus[@]}" --nuscenes-frame scene
+      done
+    done ;;
+  *) echo "table4_ship.sh: CELLS must be lidar or scene, got '$cells'" >&2; exit 2 ;;
+esac
 python scripts/backfill_provenance.py
