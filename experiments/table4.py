@@ -7,6 +7,8 @@ tables of docs/table4.md. Nothing is typed in by hand but the paper's numbers.
     python experiments/table4.py runs/table4-pilot [--tracker p2b] [--setting kitti-1] \
         [--arms none decorrelation]
     python experiments/table4.py --grid kitti-1=runs/table4-pilot kitti-2=runs/table4-pilot-kitti2
+    python experiments/table4.py runs/mbptrack-pilot --tracker mbptrack --arms none \
+        --versus p2b=runs/table4-pilot   # another tracker's -U runs, unpaired
 """
 
 from __future__ import annotations
@@ -34,6 +36,8 @@ PAPER = {
         "nuscenes-2": {"none": (38.6, 16.9), "decorrelation": (41.9, 19.0), "sam": (38.5, 19.3)},
     },
 }
+#: trackers whose runs the per-setting tables read (Table IV has rows for P2B and BAT only)
+TRACKERS = ("bat", "mbptrack", "p2b")
 ARM_SUFFIX = {"none": "-U", "decorrelation": "-W", "sam": "-S"}
 #: two-sided 90 % Student t quantiles by degrees of freedom
 T90 = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015}
@@ -87,10 +91,38 @@ def paired(diffs: list[float]) -> str:
     return f"{mean:+.1f} [{mean - half:+.1f}, {mean + half:+.1f}]"
 
 
+def unpaired(a: list[float], b: list[float]) -> str:
+    """Mean of ``a`` minus mean of ``b`` and its 90 % Welch t interval, with the conservative
+    degrees of freedom ``min(len(a), len(b)) - 1`` (the Welch-Satterthwaite lower bound)."""
+    diff = statistics.fmean(a) - statistics.fmean(b)
+    if min(len(a), len(b)) < 2:
+        return f"{diff:+.1f} (one run: no interval)"
+    se = math.sqrt(statistics.variance(a) / len(a) + statistics.variance(b) / len(b))
+    half = T90[min(len(a), len(b)) - 1] * se
+    return f"{diff:+.1f} [{diff - half:+.1f}, {diff + half:+.1f}]"
+
+
+def versus(root: Path, tracker: str, other: tuple[str, Path], seeds: list[int]) -> None:
+    """Print ``tracker``'s -U runs in ``root`` against ``other``'s (TRACKER, ROOT) -U runs over
+    the same training seeds: mean ± sd each, the unpaired difference per group."""
+    runs = {
+        name: [load_report(r / "test" / f"{name}-none-s{s}") for s in seeds]
+        for name, r in ((tracker, root), other)
+    }
+    for group in GROUPS:
+        values = {name: [success(rep, group)[0] for rep in reps] for name, reps in runs.items()}
+        mine, theirs = values[tracker], values[other[0]]
+        print(
+            f"{group}: {tracker.upper()}-U {mean_sd(mine)}, {other[0].upper()}-U "
+            f"{mean_sd(theirs)}; difference (Welch, 90 %) {unpaired(mine, theirs)}"
+        )
+
+
 def setting_tables(root: Path, tracker: str, setting: str, arms: list[str], seeds: list[int]):
     """Print one setting's tables: per file, mean ± sd per arm, paired differences to arms[0]."""
     test = root / "test"
-    label, paper_cells = tracker.upper(), PAPER[tracker][setting]
+    label = tracker.upper()
+    paper_cells = PAPER.get(tracker, {}).get(setting, {})
     reports = {
         (arm, seed): load_report(test / f"{tracker}-{arm}-s{seed}")
         for arm in arms
@@ -109,10 +141,10 @@ def setting_tables(root: Path, tracker: str, setting: str, arms: list[str], seed
     print("| --- | --- | --- | --- |")
     for arm in arms:
         row = [mean_sd([success(reports[arm, s], g)[0] for s in seeds]) for g in GROUPS]
-        paper = "{} / {}".format(*paper_cells[arm])
+        paper = "{} / {}".format(*paper_cells[arm]) if arm in paper_cells else "not in Table IV"
         print(f"| {label}{ARM_SUFFIX[arm]} | {row[0]} | {row[1]} | {paper} |")
     print()
-    for arm in arms[1:]:
+    for arm in arms[1:] if paper_cells else ():
         result = difference(reports, arms[0], arm, seeds, paper_cells)
         print(
             f"{label}{ARM_SUFFIX[arm]} minus {label}{ARM_SUFFIX[arms[0]]}, paired by training "
@@ -178,6 +210,16 @@ def setting_root(text: str) -> tuple[str, Path]:
     return name, Path(root)
 
 
+def tracker_root(text: str) -> tuple[str, Path]:
+    """``TRACKER=ROOT`` of ``--versus``."""
+    name, sep, root = text.partition("=")
+    if not sep or name not in TRACKERS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected TRACKER=ROOT with TRACKER one of {', '.join(TRACKERS)}"
+        )
+    return name, Path(root)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("root", type=Path, nargs="?", help="one setting's run root")
@@ -188,17 +230,28 @@ def main(argv: list[str] | None = None) -> int:
         metavar="SETTING=ROOT",
         help="print Table IV's layout over these settings' run roots instead",
     )
-    parser.add_argument("--tracker", choices=sorted(PAPER), default="p2b")
+    parser.add_argument("--tracker", choices=TRACKERS, default="p2b")
+    parser.add_argument(
+        "--versus",
+        type=tracker_root,
+        metavar="TRACKER=ROOT",
+        help="also compare this root's -U runs with another tracker's -U runs (unpaired)",
+    )
     parser.add_argument("--setting", choices=sorted(PAPER["p2b"]), default="kitti-1")
     parser.add_argument("--arms", nargs="+", default=["none", "decorrelation"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     args = parser.parse_args(argv)
+    if args.grid and args.tracker not in PAPER:
+        parser.error(f"--grid lays out Table IV, which has no {args.tracker} rows")
     if args.grid:
         grid_table(dict(args.grid), args.tracker, args.seeds)
     elif args.root is None:
         parser.error("give a run root or --grid SETTING=ROOT ...")
     else:
         setting_tables(args.root, args.tracker, args.setting, args.arms, args.seeds)
+        if args.versus:
+            print()
+            versus(args.root, args.tracker, args.versus, args.seeds)
     return 0
 
 

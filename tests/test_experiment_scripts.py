@@ -204,6 +204,25 @@ def test_table4_reads_another_tracker_and_setting(tmp_path, capsys):
     assert "BAT-W minus BAT-U" in out and "paper +2.5 / +2.4" in out
 
 
+def test_table4_versus_compares_two_trackers_unpaired(tmp_path, capsys):
+    script = _script("table4")
+    for seed, (obs, uns) in enumerate(((30.0, 20.0), (34.0, 22.0), (32.0, 24.0))):
+        _eval_report(tmp_path / "m" / "test" / f"mbptrack-none-s{seed}", "best.pt", obs, uns)
+    for seed, (obs, uns) in enumerate(((20.0, 10.0), (22.0, 12.0), (24.0, 14.0))):
+        _eval_report(tmp_path / "p" / "test" / f"p2b-none-s{seed}", "best.pt", obs, uns)
+    argv = [str(tmp_path / "m"), "--tracker", "mbptrack", "--arms", "none"]
+    assert script.main([*argv, "--versus", f"p2b={tmp_path / 'p'}"]) == 0
+    out = capsys.readouterr().out
+    assert "| MBPTRACK-U | 32.0 ± 2.0 | 22.0 ± 2.0 | not in Table IV |" in out
+    # observed 32 - 22 = 10; se = sqrt(4/3 + 4/3) = 1.633; half = 2.920 * 1.633 = 4.77
+    assert "observed: MBPTRACK-U 32.0 ± 2.0, P2B-U 22.0 ± 2.0; difference" in out
+    assert "(Welch, 90 %) +10.0 [+5.2, +14.8]" in out
+    with pytest.raises(SystemExit):
+        script.main(["--grid", f"kitti-1={tmp_path / 'm'}", "--tracker", "mbptrack"])
+    with pytest.raises(SystemExit):
+        script.main([*argv, "--versus", f"gpt={tmp_path / 'p'}"])
+
+
 def test_table4_grid_lays_out_settings_and_marks_what_did_not_run(tmp_path, capsys):
     script = _script("table4")
     for arm, unseen in (("none", (20.0, 22.0, 21.0)), ("decorrelation", (23.0, 24.0, 23.0))):
