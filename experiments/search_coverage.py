@@ -6,7 +6,8 @@ heading frame, lies outside the env's search crop (half sizes ``scale * l / 2 + 
 per category: the share outside, in the frame the env serves by default (each frame's LiDAR frame:
 ego motion included) and, for a nuScenes-layout root, in the reader's ``"scene"`` frame (ego
 motion removed: the global frame Open3DSOT's nuScenes loader tracks in, up to one rigid map per
-scene; ``--nuscenes-frame scene`` of train / eval / select).
+scene; ``--nuscenes-frame scene`` of train / eval / select). Also per category: the share of
+pairs whose box centre moves less than ``STILL_M`` ("still": ``previous_box`` holds them).
 
     python experiments/search_coverage.py --dataset nuscenes --preset default-km --sensor hdl32 \\
         --split train --setting nuscenes-1
@@ -40,6 +41,11 @@ def outside(
     )
 
 
+STILL_M = 0.1
+"""A pair of frames whose box centre moves less than this (metres, bird's-eye) is "still":
+``previous_box`` scores it near IoU 1."""
+
+
 def crop_exits(tracklets) -> dict[str, list[np.ndarray]]:
     """Per category, the outside flags of every tracklet, boxes ``(x, y, z, l, w, h, yaw)``."""
     flags = defaultdict(list)
@@ -47,6 +53,16 @@ def crop_exits(tracklets) -> dict[str, list[np.ndarray]]:
         b = tr.boxes
         if len(b) > 1:
             flags[tr.category].append(outside(b[:, :2], b[:, 6], b[:, 3], b[:, 4]))
+    return flags
+
+
+def still_pairs(tracklets) -> dict[str, list[np.ndarray]]:
+    """Per category, per tracklet: True where the centre moves less than ``STILL_M``."""
+    flags = defaultdict(list)
+    for tr in tracklets:
+        b = tr.boxes
+        if len(b) > 1:
+            flags[tr.category].append(np.hypot(*np.diff(b[:, :2], axis=0).T) < STILL_M)
     return flags
 
 
@@ -66,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--world-seed", type=int, default=0)
     parser.add_argument("--split", default="train")
     parser.add_argument("--setting", default="kitti-1")
+    parser.add_argument(
+        "--with-unseen", action="store_true", help="the setting's unseen categories too"
+    )
     args = parser.parse_args(argv)
     sensor = args.sensor or ("hdl32" if args.dataset == "nuscenes" else "hdl64")
     frames = ("lidar", "scene") if args.dataset == "nuscenes" else ("lidar",)
@@ -78,11 +97,14 @@ def main(argv: list[str] | None = None) -> int:
             sensor=sensor,
             world_seed=args.world_seed,
             nuscenes_frame=frame,
+            trained_only=not args.with_unseen,
         )
         if frame == "lidar":
-            print(f"{root}, {args.split}, {args.setting} observed: outside the search crop")
+            which = "all" if args.with_unseen else "observed"
+            print(f"{root}, {args.split}, {args.setting} {which}")
         where = {"lidar": "LiDAR frame (the default)", "scene": "scene frame (ego motion removed)"}
-        print(f"  {where[frame]}: {summary(crop_exits(tracklets))}")
+        print(f"  {where[frame]}, outside the search crop: {summary(crop_exits(tracklets))}")
+        print(f"  {where[frame]}, still (< {STILL_M} m): {summary(still_pairs(tracklets))}")
     return 0
 
 

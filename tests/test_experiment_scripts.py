@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import types
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -330,3 +331,8 @@ def test_search_coverage_flags_centres_outside_the_previous_crop():
     yaw = np.full(4, np.pi / 2)
     flags = script.outside(centres, yaw, np.full(4, 4.0), np.full(4, 2.0))
     assert flags.tolist() == [False, True, False]
+    boxes = np.zeros((4, 7))
+    boxes[:, :2] = centres
+    boxes[3, 0] += 0.09  # under STILL_M (0.1 m)
+    tracklet = types.SimpleNamespace(boxes=boxes, category="Car")
+    assert script.still_pairs([tracklet])["Car"][0].tolist() == [False, False, True]
