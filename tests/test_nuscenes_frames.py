@@ -119,3 +119,15 @@ def world_nus(tmp_path_factory):
     from envs.synthetic.nuscenes_layout import generate_nuscenes_world
 
     return generate_nuscenes_world(tmp_path_factory.mktemp("nus") / "w", "tiny", progress=False)
+
+
+def test_a_training_run_records_its_nuscenes_frame():
+    from training.config import TrainConfig
+    from training.provenance import train_provenance
+
+    config = TrainConfig(dataset="nuscenes", setting="nuscenes-1", nuscenes_frame="scene")
+    record = train_provenance(config.to_dict(), None, 2, commit="abc")
+    assert record.nuscenes_frame == "scene"
+    assert train_provenance({"dataset": "synthetic"}, None, 1, commit="abc").nuscenes_frame == (
+        "lidar"
+    )

@@ -94,6 +94,7 @@ def test_provenance_json_round_trip_and_lineage():
         ('{"categories": "Car"}', "categories: expected a list"),
         ('{"version": 9}', "version 9"),
         ('{"parent": {"sha256": "x"}}', "parent: expected null or an object with a name"),
+        ('{"nuscenes_frame": "global"}', "nuscenes_frame: expected one of"),
     ],
 )
 def test_bad_provenance_is_refused_naming_the_field(raw, match):
@@ -325,6 +326,27 @@ def test_eval_guard_flags_the_training_and_selection_data():
     assert (
         eval_guard({"previous_box": object()}, _args(), "kitti-1") == {}
     )  # baselines learnt nothing
+
+
+def test_the_nuscenes_frame_is_recorded_and_checked_by_eval():
+    lidar = _stage(dataset="nuscenes", setting="nuscenes-1", categories=["Truck"])
+    assert "nuscenes_frame" not in lidar.to_dict()  # records before the field: byte-identical
+    scene = lidar.replace(nuscenes_frame="scene")
+    assert Provenance.from_json(scene.to_json()) == scene
+    assert scene.to_dict()["nuscenes_frame"] == "scene"
+    nus = dict(dataset="nuscenes", preset="default-km", sensor="hdl32", setting="nuscenes-1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        eval_guard({"f": _tracker(scene)}, _args(**nus, nuscenes_frame="scene"), "nuscenes-1")
+        eval_guard({"f": _tracker(lidar)}, _args(**nus), "nuscenes-1")
+    with pytest.warns(ProvenanceWarning, match="'scene' frame and is evaluated in the 'lidar'"):
+        eval_guard({"f": _tracker(scene)}, _args(**nus), "nuscenes-1")
+    with pytest.raises(ValueError, match="--nuscenes-frame lidar"):
+        eval_guard(
+            {"f": _tracker(lidar)},
+            _args(**nus, nuscenes_frame="scene", strict=True),
+            "nuscenes-1",
+        )
 
 
 def _report(observed: dict[str, bool]) -> dict:

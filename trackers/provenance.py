@@ -27,6 +27,8 @@ from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from envs.data.nuscenes import NUSCENES_FRAMES
+
 __all__ = [
     "METADATA_KEY",
     "UNKNOWN",
@@ -70,6 +72,9 @@ class Provenance:
         git_commit: the commit of the code that trained (``+dirty`` when it had changes).
         config_hash: SHA-256 of the stage's config (JSON, sorted keys).
         config_file: the repository file holding the recipe (``configs/checkpoints/NAME.yaml``).
+        nuscenes_frame: the frame nuScenes data of this stage was served in, ``lidar`` (each
+            key frame's own; every file before the ``scene`` frame existed) or ``scene``
+            (``envs.data.nuscenes``); left out of the JSON when ``lidar``.
     """
 
     written_by: Any = UNKNOWN
@@ -89,6 +94,7 @@ class Provenance:
     git_commit: Any = UNKNOWN
     config_hash: Any = UNKNOWN
     config_file: Any = UNKNOWN
+    nuscenes_frame: Any = "lidar"
 
     def __post_init__(self) -> None:
         for name in ("world_seed", "samples", "steps"):
@@ -97,6 +103,11 @@ class Provenance:
                 not isinstance(value, int) or isinstance(value, bool) or value < 0
             ):
                 raise ValueError(f"provenance field {name}: expected an int >= 0, got {value!r}")
+        if not (_is_unknown(self.nuscenes_frame) or self.nuscenes_frame in NUSCENES_FRAMES):
+            raise ValueError(
+                f"provenance field nuscenes_frame: expected one of {list(NUSCENES_FRAMES)}, "
+                f"got {self.nuscenes_frame!r}"
+            )
         for name in ("categories", "splits"):
             value = getattr(self, name)
             if _is_unknown(value):
@@ -132,6 +143,8 @@ class Provenance:
             value = getattr(self, f.name)
             if f.name == "parent" and isinstance(value, dict):
                 value = {**value, "provenance": value["provenance"].to_dict()}
+            if f.name == "nuscenes_frame" and value == "lidar":
+                continue  # the records written before the field existed stay byte-identical
             out[f.name] = value
         return out
 

@@ -129,6 +129,7 @@ def train_provenance(
         parent=parent,
         git_commit=git_commit() if commit is None else commit,
         config_hash=config_hash(config),
+        nuscenes_frame=config.get("nuscenes_frame", "lidar"),
     )
 
 
@@ -298,6 +299,14 @@ def eval_guard(loaded: Mapping[str, Any], args: Any, setting: str | None) -> dic
                     f"{name!r} was trained on {leaked}, which setting {setting} holds out: "
                     "reported as observed, not unseen"
                 )
+        frame, trained_frame = getattr(args, "nuscenes_frame", None) or "lidar", None
+        if args.dataset == "nuscenes" and provenance.dataset == "nuscenes":
+            trained_frame = provenance.nuscenes_frame
+        if trained_frame not in (None, UNKNOWN, frame):
+            problems.append(
+                f"{name!r} was trained on nuScenes data in the {trained_frame!r} frame and is "
+                f"evaluated in the {frame!r} frame (--nuscenes-frame {trained_frame})"
+            )
         if world is not None:
             for role, parts in (
                 ("trained", provenance.trained_parts() or []),
