@@ -36,8 +36,9 @@ PAPER = {
         "nuscenes-2": {"none": (38.6, 16.9), "decorrelation": (41.9, 19.0), "sam": (38.5, 19.3)},
     },
 }
-#: trackers whose runs the per-setting tables read (Table IV has rows for P2B and BAT only)
-TRACKERS = ("bat", "mbptrack", "p2b")
+#: trackers whose runs the per-setting tables read (Table IV has rows for P2B and BAT only), by
+#: their printed names
+TRACKERS = {"bat": "BAT", "mbptrack": "MBPTrack", "p2b": "P2B"}
 ARM_SUFFIX = {"none": "-U", "decorrelation": "-W", "sam": "-S"}
 #: two-sided 90 % Student t quantiles by degrees of freedom
 T90 = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015}
@@ -113,7 +114,7 @@ def versus(root: Path, tracker: str, other: tuple[str, Path], seeds: list[int]) 
         values = {name: [success(rep, group)[0] for rep in reps] for name, reps in runs.items()}
         mine, theirs = values[tracker], values[other[0]]
         print(
-            f"{group}: {tracker.upper()}-U {mean_sd(mine)}, {other[0].upper()}-U "
+            f"{group}: {TRACKERS[tracker]}-U {mean_sd(mine)}, {TRACKERS[other[0]]}-U "
             f"{mean_sd(theirs)}; difference (Welch, 90 %) {unpaired(mine, theirs)}"
         )
 
@@ -121,7 +122,7 @@ def versus(root: Path, tracker: str, other: tuple[str, Path], seeds: list[int]) 
 def setting_tables(root: Path, tracker: str, setting: str, arms: list[str], seeds: list[int]):
     """Print one setting's tables: per file, mean ± sd per arm, paired differences to arms[0]."""
     test = root / "test"
-    label = tracker.upper()
+    label = TRACKERS[tracker]
     paper_cells = PAPER.get(tracker, {}).get(setting, {})
     reports = {
         (arm, seed): load_report(test / f"{tracker}-{arm}-s{seed}")
@@ -169,7 +170,7 @@ def grid_table(roots: dict[str, Path], tracker: str, seeds: list[int]) -> None:
     """Print Table IV's layout: one row per arm, observed / unseen per setting, mean ± sd over
     the training seeds (the paper's number in brackets); "not run" where a setting's root lacks
     the arm's reports; then the paired differences to -U."""
-    label, settings = tracker.upper(), list(PAPER[tracker])
+    label, settings = TRACKERS[tracker], list(PAPER[tracker])
     test = {name: root / "test" for name, root in roots.items()}
     reports = {
         (name, arm, seed): load_report(test[name] / f"{tracker}-{arm}-s{seed}")
@@ -230,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="SETTING=ROOT",
         help="print Table IV's layout over these settings' run roots instead",
     )
-    parser.add_argument("--tracker", choices=TRACKERS, default="p2b")
+    parser.add_argument("--tracker", choices=sorted(TRACKERS), default="p2b")
     parser.add_argument(
         "--versus",
         type=tracker_root,

@@ -214,9 +214,9 @@ def test_table4_versus_compares_two_trackers_unpaired(tmp_path, capsys):
     argv = [str(tmp_path / "m"), "--tracker", "mbptrack", "--arms", "none"]
     assert script.main([*argv, "--versus", f"p2b={tmp_path / 'p'}"]) == 0
     out = capsys.readouterr().out
-    assert "| MBPTRACK-U | 32.0 ± 2.0 | 22.0 ± 2.0 | not in Table IV |" in out
+    assert "| MBPTrack-U | 32.0 ± 2.0 | 22.0 ± 2.0 | not in Table IV |" in out
     # observed 32 - 22 = 10; se = sqrt(4/3 + 4/3) = 1.633; half = 2.920 * 1.633 = 4.77
-    assert "observed: MBPTRACK-U 32.0 ± 2.0, P2B-U 22.0 ± 2.0; difference" in out
+    assert "observed: MBPTrack-U 32.0 ± 2.0, P2B-U 22.0 ± 2.0; difference" in out
     assert "(Welch, 90 %) +10.0 [+5.2, +14.8]" in out
     with pytest.raises(SystemExit):
         script.main(["--grid", f"kitti-1={tmp_path / 'm'}", "--tracker", "mbptrack"])
