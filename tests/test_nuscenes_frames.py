@@ -131,3 +131,17 @@ def test_a_training_run_records_its_nuscenes_frame():
     assert train_provenance({"dataset": "synthetic"}, None, 1, commit="abc").nuscenes_frame == (
         "lidar"
     )
+
+
+def test_the_train_cli_passes_the_frame_and_refuses_it_off_nuscenes():
+    import argparse
+
+    from training.commands.train import add_arguments, build_config
+    from training.config import ConfigError
+
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    nus = ["--dataset", "nuscenes", "--setting", "nuscenes-1", "--nuscenes-frame", "scene"]
+    assert build_config(parser.parse_args(nus)).nuscenes_frame == "scene"
+    with pytest.raises(ConfigError, match="nuscenes_frame='scene': applies to dataset=nuscenes"):
+        build_config(parser.parse_args(["--nuscenes-frame", "scene"]))

@@ -263,6 +263,7 @@ def test_every_train_flag_reaches_the_config():
         "val_max_tracklets": ("3", "val_max_tracklets", 3),
         "val_max_frames": ("11", "val_max_frames", 11),
         "nuscenes_version": ("v1.0-mini", "nuscenes_version", "v1.0-mini"),
+        "nuscenes_frame": ("lidar", "nuscenes_frame", "lidar"),  # scene: test_nuscenes_frames
         "drct_variant": ("siamese", "drct_variant", "siamese"),
         "logger": ("tensorboard,csv", "logger", "tensorboard,csv"),
     }
