@@ -169,10 +169,8 @@ class TrackingEnv(gym.Env):
     An id's version names what an agent observes and earns for given seeds and actions; the
     ``-v0`` ids changed that twice before versions were kept:
 
-    - v1 (2026-12-05): ``pointtrack/Synthetic-v1``, ``pointtrack/KITTI-v1``,
-      ``pointtrack/NuScenes-v1``, the env as it stands; v0 at its last state behaves exactly
-      the same. The ``-v0`` ids stay, as aliases that build the same env and warn (Gymnasium's
-      ``DeprecationWarning``: "out of date").
+    - v1 (2026-12-05): ``pointtrack/{Synthetic,KITTI,NuScenes}-v1``, behaving as v0 at its
+      last state; the ``-v0`` ids stay as aliases that warn (``DeprecationWarning``).
     - v0, 2026-12-03 (4c81984): reward callables take ``(pred, gt, prev_pred, step, info)``;
       named rewards; reset options and clips. v0, 2026-12-02 (fcd21bc): ``episode_seed``.
       v0, 2026-11-25 (1255736): the first env. Additions that change no existing agent's

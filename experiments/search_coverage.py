@@ -46,24 +46,24 @@ STILL_M = 0.1
 ``previous_box`` scores it near IoU 1."""
 
 
-def crop_exits(tracklets) -> dict[str, list[np.ndarray]]:
-    """Per category, the outside flags of every tracklet, boxes ``(x, y, z, l, w, h, yaw)``."""
+def _per_category(tracklets, pair_flags) -> dict[str, list[np.ndarray]]:
+    """Per category, ``pair_flags(boxes)`` of every tracklet of two frames or more (boxes
+    ``(T, 7)`` ``(x, y, z, l, w, h, yaw)``; flags ``(T - 1,)``)."""
     flags = defaultdict(list)
     for tr in tracklets:
-        b = tr.boxes
-        if len(b) > 1:
-            flags[tr.category].append(outside(b[:, :2], b[:, 6], b[:, 3], b[:, 4]))
+        if len(tr.boxes) > 1:
+            flags[tr.category].append(pair_flags(tr.boxes))
     return flags
+
+
+def crop_exits(tracklets) -> dict[str, list[np.ndarray]]:
+    """Per category, the outside flags of every tracklet."""
+    return _per_category(tracklets, lambda b: outside(b[:, :2], b[:, 6], b[:, 3], b[:, 4]))
 
 
 def still_pairs(tracklets) -> dict[str, list[np.ndarray]]:
     """Per category, per tracklet: True where the centre moves less than ``STILL_M``."""
-    flags = defaultdict(list)
-    for tr in tracklets:
-        b = tr.boxes
-        if len(b) > 1:
-            flags[tr.category].append(np.hypot(*np.diff(b[:, :2], axis=0).T) < STILL_M)
-    return flags
+    return _per_category(tracklets, lambda b: np.hypot(*np.diff(b[:, :2], axis=0).T) < STILL_M)
 
 
 def summary(flags: dict[str, list[np.ndarray]]) -> str:

@@ -18,6 +18,7 @@ import json
 import math
 import statistics
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -201,24 +202,19 @@ def grid_table(roots: dict[str, Path], tracker: str, seeds: list[int]) -> None:
                 print(f"* {name}, {label}{ARM_SUFFIX[arm]} minus {label}-U: {result}")
 
 
-def setting_root(text: str) -> tuple[str, Path]:
-    """``SETTING=ROOT`` of ``--grid``."""
-    name, sep, root = text.partition("=")
-    if not sep or name not in PAPER["p2b"]:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: expected SETTING=ROOT with SETTING one of {', '.join(PAPER['p2b'])}"
-        )
-    return name, Path(root)
+def name_root(what: str, valid) -> Callable[[str], tuple[str, Path]]:
+    """The argparse type of ``WHAT=ROOT`` with ``WHAT`` one of ``valid`` (``--grid``,
+    ``--versus``)."""
 
+    def parse(text: str) -> tuple[str, Path]:
+        name, sep, root = text.partition("=")
+        if not sep or name not in valid:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: expected {what}=ROOT with {what} one of {', '.join(valid)}"
+            )
+        return name, Path(root)
 
-def tracker_root(text: str) -> tuple[str, Path]:
-    """``TRACKER=ROOT`` of ``--versus``."""
-    name, sep, root = text.partition("=")
-    if not sep or name not in TRACKERS:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: expected TRACKER=ROOT with TRACKER one of {', '.join(TRACKERS)}"
-        )
-    return name, Path(root)
+    return parse
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -227,14 +223,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--grid",
         nargs="+",
-        type=setting_root,
+        type=name_root("SETTING", PAPER["p2b"]),
         metavar="SETTING=ROOT",
         help="print Table IV's layout over these settings' run roots instead",
     )
     parser.add_argument("--tracker", choices=sorted(TRACKERS), default="p2b")
     parser.add_argument(
         "--versus",
-        type=tracker_root,
+        type=name_root("TRACKER", TRACKERS),
         metavar="TRACKER=ROOT",
         help="also compare this root's -U runs with another tracker's -U runs (unpaired)",
     )

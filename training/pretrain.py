@@ -71,11 +71,7 @@ from training.checkpoint import (
 from training.config import TrainConfig
 from training.losses import pooled_objective
 from training.provenance import train_provenance
-from training.rundir import (
-    atomic_write_text,
-    remove_stale_temps,
-    truncate_log,
-)
+from training.rundir import atomic_write_text, remove_stale_temps, truncate_log
 from training.sam import SAM
 from training.samples import BATCH_KEYS, TARGET_KEYS, split_batch
 from training.train_setup import (

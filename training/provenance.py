@@ -299,10 +299,9 @@ def eval_guard(loaded: Mapping[str, Any], args: Any, setting: str | None) -> dic
                     f"{name!r} was trained on {leaked}, which setting {setting} holds out: "
                     "reported as observed, not unseen"
                 )
-        frame, trained_frame = getattr(args, "nuscenes_frame", None) or "lidar", None
-        if args.dataset == "nuscenes" and provenance.dataset == "nuscenes":
-            trained_frame = provenance.nuscenes_frame
-        if trained_frame not in (None, UNKNOWN, frame):
+        frame = getattr(args, "nuscenes_frame", None) or "lidar"
+        trained_frame = provenance.nuscenes_frame if provenance.dataset == "nuscenes" else UNKNOWN
+        if args.dataset == "nuscenes" and trained_frame not in (UNKNOWN, frame):
             problems.append(
                 f"{name!r} was trained on nuScenes data in the {trained_frame!r} frame and is "
                 f"evaluated in the {frame!r} frame (--nuscenes-frame {trained_frame})"

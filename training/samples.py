@@ -404,16 +404,14 @@ def load_tracklets(
     Returns ``(tracklets, categories, root)``; raises ``ValueError`` when none are found.
     """
     from envs.data import KittiTracking, class_specific, get_setting
+    from envs.data.nuscenes import SOT_SPLITS, NuScenesTracking, check_frame
     from envs.data.settings import check_setting_layout
 
     st = class_specific(category) if category else get_setting(setting)
     check_setting_layout(st, "nuscenes" if dataset == "nuscenes" else "kitti")
     cats = st.observed if trained_only else st.categories
-    if nuscenes_frame != "lidar" and dataset != "nuscenes":
-        raise ValueError(f"nuscenes_frame={nuscenes_frame!r} applies to dataset nuscenes only")
+    check_frame(nuscenes_frame, dataset)
     if dataset == "nuscenes":
-        from envs.data.nuscenes import SOT_SPLITS, NuScenesTracking
-
         if data_root:
             root, version = data_root, version or "v1.0-trainval"
         else:

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import trackers
+from envs.data.nuscenes import check_frame
 from trackers.base import Tracker
 from training.loading import load_tracker
 from training.provenance import check_candidates, selected_provenance, selection_round
@@ -135,12 +136,7 @@ class SelectionConfig:
         check_parts(self.parts, self.train_world_seed)
         if self.dataset not in ("synthetic", "nuscenes"):
             raise ValueError(f"dataset must be 'synthetic' or 'nuscenes', got {self.dataset!r}")
-        if self.nuscenes_frame not in ("lidar", "scene"):
-            raise ValueError(
-                f"nuscenes_frame must be 'lidar' or 'scene', got {self.nuscenes_frame!r}"
-            )
-        if self.nuscenes_frame != "lidar" and self.dataset != "nuscenes":
-            raise ValueError(f"nuscenes_frame={self.nuscenes_frame!r} needs dataset='nuscenes'")
+        check_frame(self.nuscenes_frame, self.dataset)
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
         if self.num_envs > 1 and self.workers != 1:

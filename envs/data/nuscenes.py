@@ -57,6 +57,7 @@ __all__ = [
     "LIDAR_CHANNEL",
     "NUSCENES_CATEGORIES",
     "NUSCENES_FRAMES",
+    "check_frame",
     "POINT_FIELDS",
     "TABLES",
     "SOT_SPLITS",
@@ -84,6 +85,19 @@ TABLES: tuple[str, ...] = (
 LIDAR_CHANNEL = "LIDAR_TOP"
 NUSCENES_FRAMES: tuple[str, ...] = ("lidar", "scene")
 """The frames :class:`NuScenesTracking` serves scans and boxes in (module docstring)."""
+
+
+def check_frame(frame: str, dataset: str = "nuscenes") -> None:
+    """Refuse a ``frame`` not in :data:`NUSCENES_FRAMES`, or one other than ``"lidar"`` for a
+    ``dataset`` that is not nuScenes (only nuScenes data has a scene frame)."""
+    if frame not in NUSCENES_FRAMES:
+        raise ValueError(f"nuScenes frame {frame!r} is not one of {list(NUSCENES_FRAMES)}")
+    if frame != "lidar" and dataset != "nuscenes":
+        raise ValueError(
+            f"nuscenes_frame={frame!r} applies to dataset nuscenes only, not {dataset!r}"
+        )
+
+
 POINT_FIELDS = 5  # x, y, z, intensity, ring index (float32 each)
 
 # nuScenes category -> the project's category names (those of envs.data.settings). This is the
@@ -399,8 +413,7 @@ class NuScenesTracking:
         cache_size: int = 8,
         frame: str = "lidar",
     ) -> None:
-        if frame not in NUSCENES_FRAMES:
-            raise ValueError(f"nuScenes frame {frame!r} is not one of {list(NUSCENES_FRAMES)}")
+        check_frame(frame)
         self.root = Path(root)
         self.version = version
         self.split = split

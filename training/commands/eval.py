@@ -112,6 +112,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_weather_arguments(parser)
 
 
+def add_nuscenes_frame_argument(
+    parser: argparse.ArgumentParser, default: str | None = None
+) -> None:
+    """``--nuscenes-frame`` (dest ``nuscenes_frame``) of the commands that read nuScenes data."""
+    from envs.data.nuscenes import NUSCENES_FRAMES
+
+    parser.add_argument(
+        "--nuscenes-frame",
+        dest="nuscenes_frame",
+        choices=NUSCENES_FRAMES,
+        default=default,
+        help="--dataset nuscenes: scans and boxes in each key frame's LiDAR frame (lidar, "
+        "default) or in the scene's first key frame's, ego motion removed (scene)",
+    )
+
+
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
     """The dataset / env flags shared by `eval` and `demo`."""
     parser.add_argument(
@@ -134,13 +150,7 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         help="--dataset nuscenes: table folder (default v1.0-trainval with --root, else "
         "v1.0-mini); --split train/val/test read train_track/train_detect/val",
     )
-    parser.add_argument(
-        "--nuscenes-frame",
-        choices=("lidar", "scene"),
-        default=None,
-        help="--dataset nuscenes: scans and boxes in each key frame's LiDAR frame (lidar, "
-        "default) or in the scene's first key frame's, ego motion removed (scene)",
-    )
+    add_nuscenes_frame_argument(parser)
     parser.add_argument(
         "--preset",
         default="small",

@@ -16,6 +16,7 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags (and ``--config`` / ``--set``, :mod:`training.argconfig`)."""
     from training.argconfig import add_config_arguments
+    from training.commands.eval import add_nuscenes_frame_argument
     from training.selection import DEFAULT_PARTS
 
     add_config_arguments(parser)
@@ -45,13 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="synthetic",
         help="the worlds in KITTI layout (synthetic) or written in nuScenes layout (nuscenes)",
     )
-    parser.add_argument(
-        "--nuscenes-frame",
-        choices=("lidar", "scene"),
-        default="lidar",
-        help="--dataset nuscenes: each key frame's LiDAR frame (default) or the scene's first "
-        "key frame's, ego motion removed (scene)",
-    )
+    add_nuscenes_frame_argument(parser, default="lidar")
     parser.add_argument(
         "--train-world",
         type=int,

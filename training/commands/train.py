@@ -26,6 +26,7 @@ _RENAMED = {"threads": "num_threads"}
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
     import trackers
+    from training.commands.eval import add_nuscenes_frame_argument
 
     parser.add_argument(
         "--tracker", choices=trackers.available("learned"), help="the model to train"
@@ -60,13 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="--dataset nuscenes: table folder (v1.0-trainval under --data-root, "
         "else v1.0-mini, the synthetic world in nuScenes layout)",
     )
-    parser.add_argument(
-        "--nuscenes-frame",
-        dest="nuscenes_frame",
-        choices=("lidar", "scene"),
-        help="--dataset nuscenes: scans and boxes in each key frame's LiDAR frame (lidar, "
-        "default) or in the scene's first key frame's, ego motion removed (scene)",
-    )
+    add_nuscenes_frame_argument(parser)
     parser.add_argument(
         "--drct",
         action="store_true",
