@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import statistics
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+from training.intervals import paired_t_interval, welch_t_interval
 
 #: Success (observed, unseen) in the paper's Table IV, by tracker, setting and weighting
 PAPER = {
@@ -41,8 +42,6 @@ PAPER = {
 #: their printed names
 TRACKERS = {"bat": "BAT", "mbptrack": "MBPTrack", "p2b": "P2B"}
 ARM_SUFFIX = {"none": "-U", "decorrelation": "-W", "sam": "-S"}
-#: two-sided 90 % Student t quantiles by degrees of freedom
-T90 = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015}
 GROUPS = ("observed", "unseen")
 
 
@@ -84,24 +83,22 @@ def mean_sd(values: list[float]) -> str:
     return f"{statistics.fmean(values):.1f} ± {sd:.1f}"
 
 
-def paired(diffs: list[float]) -> str:
-    """Mean of the paired differences and its 90 % t interval over the pairs."""
-    mean = statistics.fmean(diffs)
-    if len(diffs) < 2:
-        return f"{mean:+.1f} (one pair: no interval)"
-    half = T90[len(diffs) - 1] * statistics.stdev(diffs) / math.sqrt(len(diffs))
+def interval(estimate: tuple[float, float | None], what: str) -> str:
+    """``+m [lo, hi]`` of an estimate and its half width, or the reason it has no interval."""
+    mean, half = estimate
+    if half is None:
+        return f"{mean:+.1f} ({what}: no interval)"
     return f"{mean:+.1f} [{mean - half:+.1f}, {mean + half:+.1f}]"
 
 
+def paired(diffs: list[float]) -> str:
+    """Mean of the paired differences and its 90 % t interval over the pairs."""
+    return interval(paired_t_interval(diffs), "one pair")
+
+
 def unpaired(a: list[float], b: list[float]) -> str:
-    """Mean of ``a`` minus mean of ``b`` and its 90 % Welch t interval, with the conservative
-    degrees of freedom ``min(len(a), len(b)) - 1`` (the Welch-Satterthwaite lower bound)."""
-    diff = statistics.fmean(a) - statistics.fmean(b)
-    if min(len(a), len(b)) < 2:
-        return f"{diff:+.1f} (one run: no interval)"
-    se = math.sqrt(statistics.variance(a) / len(a) + statistics.variance(b) / len(b))
-    half = T90[min(len(a), len(b)) - 1] * se
-    return f"{diff:+.1f} [{diff - half:+.1f}, {diff + half:+.1f}]"
+    """Mean of ``a`` minus mean of ``b`` and its 90 % Welch t interval."""
+    return interval(welch_t_interval(a, b), "one run")
 
 
 def versus(root: Path, tracker: str, other: tuple[str, Path], seeds: list[int]) -> None:

@@ -336,3 +336,49 @@ def test_search_coverage_flags_centres_outside_the_previous_crop():
     boxes[3, 0] += 0.09  # under STILL_M (0.1 m)
     tracklet = types.SimpleNamespace(boxes=boxes, category="Car")
     assert script.still_pairs([tracklet])["Car"][0].tolist() == [False, False, True]
+
+
+def _weather_result(folder: Path, clean: float, levels: dict[str, list[float]]) -> None:
+    """A minimal ``weather.json`` whose groups all share ``clean`` and per-kind ``levels``."""
+    entry = {
+        kind: {
+            "clean": [clean, 0.0],
+            "levels": [[v, 0.0] for v in values],
+            "DR": [1 - sum(values) / len(values) / clean, 0.0],
+        }
+        for kind, values in levels.items()
+    }
+    robustness = {kind: {g: e for g in ("mean", "observed", "unseen")} for kind, e in entry.items()}
+    (folder / "weather_x").mkdir(parents=True)
+    result = {"tracker": folder.name, "kinds": list(levels), "robustness": robustness}
+    (folder / "weather_x" / "weather.json").write_text(json.dumps(result))
+
+
+def test_drct_seeds_tables_paired_differences_and_verdict(tmp_path, capsys):
+    script = _script("drct_seeds")
+    runs = {  # name: (clean, fog levels, rain levels)
+        "plain-s21": (40.0, [36.0, 32.0], [38.0, 34.0]),  # weather mean 35.0
+        "plain-s22": (42.0, [38.0, 34.0], [40.0, 36.0]),  # 37.0
+        "drct-s21": (40.5, [40.0, 38.0], [40.0, 38.0]),  # 39.0
+        "drct-s22": (41.5, [41.0, 39.0], [41.0, 39.0]),  # 40.0
+    }
+    for name, (clean, fog, rain) in runs.items():
+        _weather_result(tmp_path / "weather" / name, clean, {"fog": fog, "rain": rain})
+    assert script.main([str(tmp_path), "--arms", "plain", "drct", "--seeds", "21", "22"]) == 0
+    out = capsys.readouterr().out
+    # plain-s21: DR fog 1 - 34/40 = 0.15, rain 1 - 36/40 = 0.10: mean 0.125
+    assert "| plain-s21 | 40.0 | 35.0 | 0.125 |" in out
+    # drct DR 1 - 39 / 40.5 = 0.0370 and 1 - 40 / 41.5 = 0.0361: mean 0.0366, sd 0.0006
+    assert "| drct (mean ± sd) | 41.0 ± 0.7 | 39.5 ± 0.7 | 0.037 ± 0.001 |" in out
+    # clean differences +0.5, -0.5 and weather differences 4, 3: sd 0.707 each, half width
+    # 6.314 * 0.707 / sqrt(2) = 3.16
+    assert "| drct − plain (paired, 90 %) | +0.0 [-3.2, 3.2] | +3.5 [0.3, 6.7] |" in out
+    # gain 3.5 > larger sd 1.41, interval above 0, clean +0.0: helps
+    assert "weather-mean Success +3.50 [+0.34, +6.66] (paired, 90 %; larger sd 1.41)" in out
+    assert "clean +0.00: DRCT helps" in out
+
+
+def test_drct_seeds_names_a_missing_run(tmp_path):
+    script = _script("drct_seeds")
+    with pytest.raises(SystemExit, match="plain-s21: expected one"):
+        script.main([str(tmp_path), "--arms", "plain", "drct", "--seeds", "21"])

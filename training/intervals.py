@@ -32,14 +32,18 @@ __all__ = [
     "add_intervals",
     "check_seeds",
     "combine_seeds",
+    "paired_t_interval",
     "percentile_interval",
     "pooled_resamples",
     "resample_counts",
+    "welch_t_interval",
 ]
 
 DEFAULT_LEVEL = 0.9
 DEFAULT_RESAMPLES = 2000
 GROUPS = ("observed", "unseen", "mean")
+#: two-sided 90 % Student t quantiles by degrees of freedom (comparisons over 2-6 training seeds)
+T90 = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015}
 
 
 def resample_counts(strata: Sequence[Hashable], resamples: int, seed: int) -> np.ndarray:
@@ -138,6 +142,26 @@ def add_intervals(
         "method": "percentile bootstrap over tracklets, stratified by category, frame-weighted",
     }
     return report
+
+
+def paired_t_interval(diffs: Sequence[float]) -> tuple[float, float | None]:
+    """Mean of paired differences (one per training seed) and the half width of its 90 % t
+    interval; ``None`` with a single pair."""
+    mean = float(np.mean(diffs))
+    if len(diffs) < 2:
+        return mean, None
+    return mean, T90[len(diffs) - 1] * float(np.std(diffs, ddof=1)) / math.sqrt(len(diffs))
+
+
+def welch_t_interval(a: Sequence[float], b: Sequence[float]) -> tuple[float, float | None]:
+    """``mean(a) - mean(b)`` and the half width of its 90 % Welch t interval, with the
+    conservative degrees of freedom ``min(len(a), len(b)) - 1`` (the Welch-Satterthwaite lower
+    bound); ``None`` when either side has one value."""
+    diff = float(np.mean(a) - np.mean(b))
+    if min(len(a), len(b)) < 2:
+        return diff, None
+    se = math.sqrt(np.var(a, ddof=1) / len(a) + np.var(b, ddof=1) / len(b))
+    return diff, T90[min(len(a), len(b)) - 1] * se
 
 
 def check_seeds(seeds: Sequence[int]) -> list[int]:
