@@ -203,11 +203,21 @@ def test_hash_order_spreads_duplicates_like_a_random_permutation():
     assert torch.equal(prefix, ops.gather(pts[:, perm], ops.hash_order(pts[:, perm])[:, :64])[0])
 
 
-@pytest.mark.parametrize("dense_pairs", [0, 10**9])  # always the grid / always every pair
-@pytest.mark.parametrize("radius,k", [(0.15, 8), (0.3, 32), (10.0, 4), (0.05, 2)])
-def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, dense_pairs, monkeypatch):
-    monkeypatch.setattr(ops, "_DENSE_PAIRS", dense_pairs)
+def _ball_path(path: str, monkeypatch) -> None:
+    """Force one path of ``ops.ball_query_pairs``: the compiled scan, the grid or every pair."""
+    if path == "compiled":
+        if ops._ball_kernel() is None:
+            pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+        return
+    monkeypatch.setattr(ops, "_ball_kernel", lambda: None)
+    monkeypatch.setattr(ops, "_DENSE_PAIRS", 0 if path == "grid" else 10**9)
     monkeypatch.setattr(ops, "_GRID_SHARE", 0)  # the grid even where its candidates are many
+
+
+@pytest.mark.parametrize("path", ["compiled", "grid", "dense"])
+@pytest.mark.parametrize("radius,k", [(0.15, 8), (0.3, 32), (10.0, 4), (0.05, 2)])
+def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, path, monkeypatch):
+    _ball_path(path, monkeypatch)
     xyz = _points(n=200, seed=4)
     xyz[:, 100:130] = xyz[:, 60:90]  # copies: equal keys in the sorted grid cells
     centres = torch.cat(
@@ -275,6 +285,29 @@ def test_ball_query_grid_cells_find_every_hit(seed, monkeypatch):
     dense = ops._ball_dense(radius, k, xyz, centres)
     grid = ops._ball_grid(radius, k, xyz, centres)
     assert torch.equal(dense[0], grid[0]) and torch.equal(dense[1], grid[1])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_ball_query_compiled_scan_equals_every_pair(seed):
+    """The compiled scan against the dense torch test on clustered crops with copies, points
+    exactly one radius away (float32 and float64) and centres without a hit."""
+    if ops._ball_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    g = torch.Generator().manual_seed(seed)
+    radius, k = [0.3, 0.5, 0.25, 1.0][seed], [32, 16, 48, 1][seed]
+    xyz = torch.randn(3, 512, 3, generator=g) * torch.tensor([1.0, 0.6, 0.4])
+    xyz[:, 300:] = xyz[:, :212].clone()  # the env's padding copies
+    xyz[:, 100:140] = xyz[:, :40] + torch.tensor([radius, 0.0, 0.0])  # exactly one radius away
+    centres = torch.cat([xyz[:, :200], torch.full((3, 2, 3), 9.0)], dim=1)
+    for dtype in (torch.float32, torch.float64):
+        x, c = xyz.to(dtype), centres.to(dtype)
+        b, m, n = c.shape[0], c.shape[1], x.shape[1]
+        group, point = ops.ball_query_pairs(radius, k, x, c)
+        dense_group, dense_point = ops._ball_dense(radius, k, x, c)
+        assert torch.equal(group, dense_group)
+        row = torch.div(dense_group, m, rounding_mode="floor")
+        assert torch.equal(point, dense_point + row * n)
+        assert b * m <= len(group) <= b * m * k
 
 
 def _chamfer_ref(a, am, b, bm):

@@ -316,19 +316,65 @@ def ball_query_pairs(
 
     Per centre the first ``k`` hits in index order - the slots of ``ball_query`` below its count;
     a centre without hits gets the one pair ``(centre, point 0)``, as its all-zero ``idx`` row.
-    Small problems test every pair (:func:`_ball_dense`); larger ones only the points of the
-    3 x 3 grid cells around each centre (:func:`_ball_grid`), unless those are a large share of
-    all pairs (clustered clouds); the hit test is the same distance
-    formula either way, so the pairs are the same.
+    On CPU with numba (the ``fast`` extra) a compiled scan that stops at each centre's ``k``-th
+    hit (:func:`_ball_kernel`). Otherwise small problems test every pair (:func:`_ball_dense`);
+    larger ones only the points of the 3 x 3 grid cells around each centre (:func:`_ball_grid`),
+    unless those are a large share of all pairs (clustered clouds). The hit test is the same
+    distance formula on every path, so the pairs are the same.
     """
     with torch.no_grad():  # indices only: no graph through the distances
         b, n = xyz.shape[:2]
         m = centres.shape[1]
+        kernel = _ball_kernel() if xyz.device.type == "cpu" and xyz.shape[-1] == 3 else None
+        if kernel is not None and k > 0:
+            points = xyz.detach().contiguous().numpy()
+            r2 = points.dtype.type(radius * radius)  # the tensor's dtype, as torch's comparison
+            group, point = kernel(points, centres.detach().contiguous().numpy(), r2, k)
+            return torch.from_numpy(group), torch.from_numpy(point)
         if b * m * n <= _DENSE_PAIRS:
             group, point = _ball_dense(radius, k, xyz, centres)
         else:
             group, point = _ball_grid(radius, k, xyz, centres)
         return group, point + torch.div(group, m, rounding_mode="floor") * n
+
+
+@functools.cache
+def _ball_kernel() -> Callable | None:
+    """The compiled ball query ``(xyz (B, N, 3), centres (B, M, 3), r2, k) -> (group (P,),
+    point (P,))`` of :func:`ball_query_pairs` (flat indices), or ``None`` without numba. Per
+    centre it scans the points in index order and stops at the ``k``-th hit; the squared
+    distance is ``pairwise_sqdist``'s, ``(dx^2 + dy^2) + dz^2`` in the points' dtype, so the
+    pairs are the same as the torch paths'."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=True, nogil=True)
+    def ball_pairs(xyz, centres, r2, k):  # pragma: no cover - compiled
+        b, n, _ = xyz.shape
+        m = centres.shape[1]
+        group = np.empty(b * m * k, dtype=np.int64)
+        point = np.empty(b * m * k, dtype=np.int64)
+        p = 0
+        for r in range(b):
+            for i in range(m):
+                cx, cy, cz = centres[r, i, 0], centres[r, i, 1], centres[r, i, 2]
+                found = 0
+                for j in range(n):
+                    dx, dy, dz = cx - xyz[r, j, 0], cy - xyz[r, j, 1], cz - xyz[r, j, 2]
+                    if dx * dx + dy * dy + dz * dz < r2:
+                        group[p], point[p] = r * m + i, r * n + j
+                        p += 1
+                        found += 1
+                        if found == k:
+                            break
+                if found == 0:  # no hit: the pair (centre, point 0)
+                    group[p], point[p] = r * m + i, r * n
+                    p += 1
+        return group[:p], point[:p]
+
+    return ball_pairs
 
 
 #: :func:`ball_query_pairs` tests every pair up to this many (``B * M * N``), else grid cells.
