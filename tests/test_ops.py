@@ -310,6 +310,26 @@ def test_ball_query_compiled_scan_equals_every_pair(seed):
         assert b * m <= len(group) <= b * m * k
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_knn_compiled_equals_the_stable_sort(seed, monkeypatch):
+    """The compiled k nearest neighbours against the stable sort of every distance, with ties
+    (coordinates on a coarse grid, every point twice): the same distances and indices."""
+    if ops._knn_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    g = torch.Generator().manual_seed(seed)
+    b, m, n, k = 2, (5, 100, 512)[seed], (7, 300, 1024)[seed], (1, 8, 16)[seed]
+    query, ref = torch.rand(b, m, 3, generator=g) * 4, torch.rand(b, n, 3, generator=g) * 4
+    query, ref = (query * 2).round() / 2, (ref * 2).round() / 2
+    ref[:, n // 2 :] = ref[:, : n - n // 2].clone()
+    ref.requires_grad_(True)
+    compiled = ops.knn(k, query, ref)
+    monkeypatch.setattr(ops, "_knn_kernel", lambda: None)
+    reference = ops.knn(k, query, ref)
+    assert torch.equal(compiled[1], reference[1]) and torch.equal(compiled[0], reference[0])
+    compiled[0].sum().backward()  # the distances stay differentiable
+    assert ref.grad is not None and torch.isfinite(ref.grad).all()
+
+
 def _chamfer_ref(a, am, b, bm):
     """Loops over the masked points, float64."""
     out = []

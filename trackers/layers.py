@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["MLP", "grouped_max", "max_pool", "set_fast_eval"]
+__all__ = ["MLP", "dense_max", "grouped_max", "max_pool", "set_fast_eval"]
 
 
 def set_fast_eval(module: nn.Module, enabled: bool) -> None:
@@ -140,6 +140,19 @@ class MLP(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         w, b = self.linear_params(0)
         return self.forward_from(0, F.linear(x, w, b))
+
+
+def dense_max(mlp: MLP, pre: torch.Tensor, dim: int) -> torch.Tensor:
+    """``mlp.forward_from(0, pre).amax(dim)`` for neighbourhoods laid out densely (``pre``: the
+    first layer's pre-activation, e.g. ``(B, M, k, C1)``); the MLP must end in a ReLU. In eval
+    (fast path) the last Linear's bias and the ReLU act after the max, on one row per group
+    instead of ``k`` (monotone: the same maxima up to the rounding of the bias add)."""
+    last = len(mlp.linears) - 1
+    if mlp.training or not mlp.fast_eval or last == 0:
+        return mlp.forward_from(0, pre).amax(dim=dim)
+    w, bias = mlp.linear_params(last)
+    out = F.linear(mlp.hidden_from(0, pre, last), w).amax(dim=dim)
+    return mlp.finish(last, out if bias is None else out + bias)
 
 
 def grouped_max(

@@ -19,17 +19,16 @@ import torch.nn.functional as F
 from torch import nn
 
 from trackers import ops
-from trackers.layers import MLP
+from trackers.layers import MLP, dense_max
 
 __all__ = ["BPLocNet", "DGCNNBackbone", "MemoryTransformerLayer", "box_prior_offsets", "knn_idx"]
 
 
 def knn_idx(k: int, query: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     """Indices ``(B, M, k)`` of the ``k`` nearest points of ``ref (B, N, 3)`` to each of ``query
-    (B, M, 3)``. Ties (duplicated points: the env pads small crops with copies) pick one of equal
-    rows, so the grouped values do not depend on which."""
-    k = min(k, ref.shape[1])
-    return ops.pairwise_sqdist(query, ref).topk(k, dim=-1, largest=False).indices
+    (B, M, 3)`` (:func:`trackers.ops.knn`: ties to the lower index; ``k`` capped at ``N``)."""
+    with torch.no_grad():  # indices only
+        return ops.knn(min(k, ref.shape[1]), query, ref)[1]
 
 
 def _first_layer_split(
@@ -64,7 +63,7 @@ class EdgeConv(nn.Module):
         idx = knn_idx(self.k, centres, xyz)  # (B, n, k)
         per_point, per_centre = _first_layer_split(self.mlp, f, f[:, :n], f.shape[-1])
         pre = ops.group(per_point, idx) + per_centre[:, :, None]
-        return centres, self.mlp.forward_from(0, pre).amax(dim=2)
+        return centres, dense_max(self.mlp, pre, dim=2)
 
 
 class DGCNNBackbone(nn.Module):
@@ -260,7 +259,7 @@ class BPLocNet(nn.Module):
         per_seed = F.linear(xyz, w[:, :3]) + F.linear(feat_s, w[:, 6:])
         per_sample = F.linear(samples, w[:, 3:6] - w[:, :3], bias)
         pre = ops.group(per_seed, idx) + per_sample[:, :, None]
-        sample_feat = self.edge.forward_from(0, pre).amax(dim=2)  # (B, K S, D)
+        sample_feat = dense_max(self.edge, pre, dim=2)  # (B, K S, D)
         proposal_feat = self.aggr(sample_feat.reshape(b, k_prop, -1))
         out = self.fc_proposal(proposal_feat + self.center_emb(score))
         boxes = torch.cat([out[..., :3] + proposal_xyz, out[..., 3:]], dim=-1)

@@ -463,10 +463,58 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
     """
     if k > ref.shape[1]:
         raise ValueError(f"k = {k} exceeds the {ref.shape[1]} reference points")
+    kernel = _knn_kernel() if query.device.type == "cpu" and query.shape[-1] == 3 else None
+    if kernel is not None and k > 0 and query.dtype == ref.dtype:
+        b, m = query.shape[:2]
+        sd = torch.empty(b, m, k, dtype=query.dtype)
+        si = torch.empty(b, m, k, dtype=torch.long)
+        q, r = query.detach().contiguous().numpy(), ref.detach().contiguous().numpy()
+        kernel(q, r, sd.numpy(), si.numpy())
+        if query.requires_grad or ref.requires_grad:  # differentiable distances, same values
+            sd = pairwise_sqdist(query, ref).gather(-1, si)
+        return sd, si
     d = pairwise_sqdist(query, ref)
     # a stable sort gives the documented tie order; topk's tie order is unspecified
     sd, si = torch.sort(d, dim=-1, stable=True)
     return sd[..., :k], si[..., :k]
+
+
+@functools.cache
+def _knn_kernel() -> Callable | None:
+    """The compiled :func:`knn` for coordinates ``(query (B, M, 3), ref (B, N, 3), sqdist (B,
+    M, k) out, idx (B, M, k) out)``, or ``None`` without numba: per query an insertion into the
+    ``k`` best so far, a later point replacing only a strictly farther one (ties: lower index
+    first, as the stable sort), with ``pairwise_sqdist``'s ``(dx^2 + dy^2) + dz^2``."""
+    try:
+        import numba
+    except ImportError:
+        return None
+
+    @numba.njit(cache=True, nogil=True)
+    def knn_rows(query, ref, sqdist, idx):  # pragma: no cover - compiled
+        b, m, _ = query.shape
+        n, k = ref.shape[1], idx.shape[2]
+        for r in range(b):
+            for i in range(m):
+                qx, qy, qz = query[r, i, 0], query[r, i, 1], query[r, i, 2]
+                dist, near = sqdist[r, i], idx[r, i]
+                filled = 0
+                for j in range(n):
+                    dx, dy, dz = qx - ref[r, j, 0], qy - ref[r, j, 1], qz - ref[r, j, 2]
+                    d = dx * dx + dy * dy + dz * dz
+                    if filled < k:
+                        pos = filled
+                        filled += 1
+                    elif d < dist[k - 1]:
+                        pos = k - 1
+                    else:
+                        continue
+                    while pos > 0 and dist[pos - 1] > d:
+                        dist[pos], near[pos] = dist[pos - 1], near[pos - 1]
+                        pos -= 1
+                    dist[pos], near[pos] = d, j
+
+    return knn_rows
 
 
 def chamfer_distance(
