@@ -33,7 +33,7 @@ from torch import nn
 from trackers import ops
 from trackers.base import SLIM_BACKBONE, MatchingConfig, MatchingTracker
 from trackers.head import smooth_l1
-from trackers.layers import MLP, max_pool
+from trackers.layers import MLP, dense_max
 from trackers.registry import register
 
 __all__ = ["GPT", "GPTConfig", "GraphFusion"]
@@ -82,7 +82,7 @@ class GraphFusion(nn.Module):
         per_t = F.linear(torch.cat([t_xyz, f_t, clue], dim=-1), w, b)  # (B, M_T, out)
         per_s = f_s @ w[:, 3 : 3 + n].t()  # (B, M_S, out)
         pre = ops.group(per_t, nbr) - per_s[:, :, None, :]  # (B, M_S, k, out)
-        return max_pool(self.edge.forward_from(0, pre), 2), votes
+        return dense_max(self.edge, pre, 2), votes
 
 
 @register("gpt")

@@ -25,7 +25,7 @@ groups only (ragged), for the set abstraction and the proposal aggregation on th
 from __future__ import annotations
 
 import operator
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -142,14 +142,21 @@ class MLP(nn.Module):
         return self.forward_from(0, F.linear(x, w, b))
 
 
-def dense_max(mlp: MLP, pre: torch.Tensor, dim: int) -> torch.Tensor:
-    """``mlp.forward_from(0, pre).amax(dim)`` for neighbourhoods laid out densely (``pre``: the
-    first layer's pre-activation, e.g. ``(B, M, k, C1)``); the MLP must end in a ReLU. In eval
-    (fast path) the last Linear's bias and the ReLU act after the max, on one row per group
-    instead of ``k`` (monotone: the same maxima up to the rounding of the bias add)."""
+def dense_max(
+    mlp: MLP,
+    pre: torch.Tensor,
+    dim: int,
+    pool: Callable[[torch.Tensor, int], torch.Tensor] = max_pool,
+) -> torch.Tensor:
+    """``pool(mlp.forward_from(0, pre), dim)`` for neighbourhoods laid out densely (``pre``: the
+    first layer's pre-activation, e.g. ``(B, M, k, C1)``); the MLP must end in a ReLU. ``pool``
+    is the training path's max (:func:`max_pool`, or ``torch.amax`` for its even split of the
+    gradient among ties). In eval (fast path) the last Linear's bias and the ReLU act after the
+    max, on one row per group instead of ``k`` (monotone: the same maxima up to the rounding of
+    the bias add)."""
     last = len(mlp.linears) - 1
     if mlp.training or not mlp.fast_eval or last == 0:
-        return mlp.forward_from(0, pre).amax(dim=dim)
+        return pool(mlp.forward_from(0, pre), dim)
     w, bias = mlp.linear_params(last)
     out = F.linear(mlp.hidden_from(0, pre, last), w).amax(dim=dim)
     return mlp.finish(last, out if bias is None else out + bias)

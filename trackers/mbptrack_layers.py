@@ -63,7 +63,7 @@ class EdgeConv(nn.Module):
         idx = knn_idx(self.k, centres, xyz)  # (B, n, k)
         per_point, per_centre = _first_layer_split(self.mlp, f, f[:, :n], f.shape[-1])
         pre = ops.group(per_point, idx) + per_centre[:, :, None]
-        return centres, dense_max(self.mlp, pre, dim=2)
+        return centres, dense_max(self.mlp, pre, 2, torch.amax)
 
 
 class DGCNNBackbone(nn.Module):
@@ -259,7 +259,7 @@ class BPLocNet(nn.Module):
         per_seed = F.linear(xyz, w[:, :3]) + F.linear(feat_s, w[:, 6:])
         per_sample = F.linear(samples, w[:, 3:6] - w[:, :3], bias)
         pre = ops.group(per_seed, idx) + per_sample[:, :, None]
-        sample_feat = dense_max(self.edge, pre, dim=2)  # (B, K S, D)
+        sample_feat = dense_max(self.edge, pre, 2, torch.amax)  # (B, K S, D)
         proposal_feat = self.aggr(sample_feat.reshape(b, k_prop, -1))
         out = self.fc_proposal(proposal_feat + self.center_emb(score))
         boxes = torch.cat([out[..., :3] + proposal_xyz, out[..., 3:]], dim=-1)
