@@ -387,10 +387,10 @@ def test_m2track_policy_refuses_an_env_without_previous_search_and_fusion_parts(
 # ---------------------------------------------------------------- GroupPPO
 
 
-def group_ppo(data, tracker, num_envs: int = 2, **kwargs) -> GroupPPO:
+def group_ppo(data, tracker, num_envs: int = 2, env_kwargs=None, **kwargs) -> GroupPPO:
     from stable_baselines3.common.vec_env import DummyVecEnv
 
-    venv = DummyVecEnv([lambda: rescaled(data)] * num_envs)
+    venv = DummyVecEnv([lambda: rescaled(data, **(env_kwargs or {}))] * num_envs)
     defaults = {"n_steps": 4, "batch_size": 8, "n_epochs": 1, "seed": 0, "device": "cpu"}
     policy_kwargs = {"tracker": tracker, "log_std_init": -1.0, **kwargs.pop("policy_kwargs", {})}
     return GroupPPO(TrackerPolicy, venv, policy_kwargs=policy_kwargs, **{**defaults, **kwargs})
@@ -506,3 +506,36 @@ def test_group_ppo_cached_features_update_equals_uncached(data, train_parts):
         shifted = cached.policy.mean_and_value(obs, False, buf.features.select(rows.roll(1)))[0]
     torch.testing.assert_close(replayed, fresh, atol=1e-6, rtol=0)
     assert not torch.allclose(shifted, fresh, atol=1e-3)
+
+
+def test_mbptrack_policy_starts_as_the_tracker_and_its_cached_update_equals_uncached(data):
+    """MBPTrack as the actor (issue 46 item 5): the env serves its memory keys, before any
+    update the deterministic prediction is the rescaled ``act``, ``"head"`` trains BPLocNet,
+    and a group PPO update on the rollout's cached backbone and transformer outputs equals the
+    uncached one (to 1e-6)."""
+    from envs.spec import MEMORY_KEYS, OBSERVATION_KEYS
+
+    torch.manual_seed(0)
+    base = trackers.make("mbptrack", **trackers.size_config("mbptrack", "slim")).eval()
+    # the untrained tracker loses the toy targets (IoU 0 everywhere): a dense reward
+    env_kwargs = {
+        "observation_keys": (*OBSERVATION_KEYS, *MEMORY_KEYS),
+        "reward": "neg_center_error",
+    }
+    model = ppo(data, base, env=rescaled(data, **env_kwargs))
+    assert_predict_equals_act(model, base, observations(base, data, **env_kwargs))
+    loc = {id(p) for p in model.policy.tracker.loc.parameters()}
+    assert {id(p) for p in model.policy.trainable_tracker_parameters} == loc
+    runs = {}
+    for cache in (True, False):
+        group = group_ppo(
+            data, base, env_kwargs=env_kwargs, group_size=4, learning_rate=1e-3, n_epochs=2,
+            cache_features=cache, batch_size=4, policy_kwargs={"tracker_lr_scale": 1.0},
+        )  # fmt: skip
+        collect(group)
+        group.train()
+        runs[cache] = group.policy.trainable_tracker_parameters
+    moved = [not torch.equal(p, q) for p, q in zip(runs[True], base.loc.parameters(), strict=True)]
+    assert any(moved)
+    for p, q in zip(runs[True], runs[False], strict=True):
+        torch.testing.assert_close(p, q, atol=1e-6, rtol=0)
