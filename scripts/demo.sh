@@ -3,5 +3,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m pip install --quiet torch==2.13.0
-python3 -m pip install --quiet -e .
+python3 -m pip install --quiet -e ".[fast]"  # numba: the compiled point ops
 pointtrack demo "$@"
