@@ -246,16 +246,25 @@ def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Te
     return torch.stack(picks, dim=1) if picks else torch.empty(b, 0, dtype=torch.long)
 
 
-@functools.cache
-def _fps_kernel() -> Callable | None:
-    """The compiled FPS loop ``(xyz (B, N, 3) float ndarray, n, start, out (B, n) int64)``, or
-    ``None`` without numba (imported and compiled on first use; cached on disk by numba)."""
+def _numba_njit() -> Callable | None:
+    """numba's ``njit(cache=True, nogil=True)`` (compiled on first use, cached on disk), or
+    ``None`` without numba (the ``fast`` extra): the compiled kernels below fall back to torch."""
     try:
         import numba
     except ImportError:
         return None
+    return numba.njit(cache=True, nogil=True)
 
-    @numba.njit(cache=True, nogil=True)
+
+@functools.cache
+def _fps_kernel() -> Callable | None:
+    """The compiled FPS loop ``(xyz (B, N, 3) float ndarray, n, start, out (B, n) int64)``, or
+    ``None`` without numba (imported and compiled on first use; cached on disk by numba)."""
+    njit = _numba_njit()
+    if njit is None:
+        return None
+
+    @njit
     def fps_rows(xyz, n, start, out):  # pragma: no cover - compiled
         b, npts, _ = xyz.shape
         mind = np.empty(npts, dtype=xyz.dtype)
@@ -345,12 +354,11 @@ def _ball_kernel() -> Callable | None:
     centre it scans the points in index order and stops at the ``k``-th hit; the squared
     distance is ``pairwise_sqdist``'s, ``(dx^2 + dy^2) + dz^2`` in the points' dtype, so the
     pairs are the same as the torch paths'."""
-    try:
-        import numba
-    except ImportError:
+    njit = _numba_njit()
+    if njit is None:
         return None
 
-    @numba.njit(cache=True, nogil=True)
+    @njit
     def ball_pairs(xyz, centres, r2, k):  # pragma: no cover - compiled
         b, n, _ = xyz.shape
         m = centres.shape[1]
@@ -485,12 +493,11 @@ def _knn_kernel() -> Callable | None:
     M, k) out, idx (B, M, k) out)``, or ``None`` without numba: per query an insertion into the
     ``k`` best so far, a later point replacing only a strictly farther one (ties: lower index
     first, as the stable sort), with ``pairwise_sqdist``'s ``(dx^2 + dy^2) + dz^2``."""
-    try:
-        import numba
-    except ImportError:
+    njit = _numba_njit()
+    if njit is None:
         return None
 
-    @numba.njit(cache=True, nogil=True)
+    @njit
     def knn_rows(query, ref, sqdist, idx):  # pragma: no cover - compiled
         b, m, _ = query.shape
         n, k = ref.shape[1], idx.shape[2]
