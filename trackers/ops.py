@@ -246,23 +246,27 @@ def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Te
     return torch.stack(picks, dim=1) if picks else torch.empty(b, 0, dtype=torch.long)
 
 
-def _numba_njit() -> Callable | None:
-    """numba's ``njit(cache=True, nogil=True)`` (compiled on first use, cached on disk), or
-    ``None`` without numba (the ``fast`` extra): the compiled kernels below fall back to torch."""
-    try:
-        import numba
-    except ImportError:
-        return None
-    return numba.njit(cache=True, nogil=True)
+def _compiled(build: Callable[[Callable], Callable]) -> Callable[[], Callable | None]:
+    """A kernel getter: ``build(njit)`` with numba's ``njit(cache=True, nogil=True)`` on the
+    first call (compiled on first use, cached on disk by numba), ``None`` without numba (the
+    ``fast`` extra): the callers then run their torch paths."""
+
+    @functools.cache
+    def kernel() -> Callable | None:
+        try:
+            import numba
+        except ImportError:
+            return None
+        return build(numba.njit(cache=True, nogil=True))
+
+    kernel.__doc__ = build.__doc__
+    return kernel
 
 
-@functools.cache
-def _fps_kernel() -> Callable | None:
+@_compiled
+def _fps_kernel(njit: Callable) -> Callable:
     """The compiled FPS loop ``(xyz (B, N, 3) float ndarray, n, start, out (B, n) int64)``, or
     ``None`` without numba (imported and compiled on first use; cached on disk by numba)."""
-    njit = _numba_njit()
-    if njit is None:
-        return None
 
     @njit
     def fps_rows(xyz, n, start, out):  # pragma: no cover - compiled
@@ -347,16 +351,13 @@ def ball_query_pairs(
         return group, point + torch.div(group, m, rounding_mode="floor") * n
 
 
-@functools.cache
-def _ball_kernel() -> Callable | None:
+@_compiled
+def _ball_kernel(njit: Callable) -> Callable:
     """The compiled ball query ``(xyz (B, N, 3), centres (B, M, 3), r2, k) -> (group (P,),
     point (P,))`` of :func:`ball_query_pairs` (flat indices), or ``None`` without numba. Per
     centre it scans the points in index order and stops at the ``k``-th hit; the squared
     distance is ``pairwise_sqdist``'s, ``(dx^2 + dy^2) + dz^2`` in the points' dtype, so the
     pairs are the same as the torch paths'."""
-    njit = _numba_njit()
-    if njit is None:
-        return None
 
     @njit
     def ball_pairs(xyz, centres, r2, k):  # pragma: no cover - compiled
@@ -487,15 +488,12 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
     return sd[..., :k], si[..., :k]
 
 
-@functools.cache
-def _knn_kernel() -> Callable | None:
+@_compiled
+def _knn_kernel(njit: Callable) -> Callable:
     """The compiled :func:`knn` for coordinates ``(query (B, M, 3), ref (B, N, 3), sqdist (B,
     M, k) out, idx (B, M, k) out)``, or ``None`` without numba: per query an insertion into the
     ``k`` best so far, a later point replacing only a strictly farther one (ties: lower index
     first, as the stable sort), with ``pairwise_sqdist``'s ``(dx^2 + dy^2) + dz^2``."""
-    njit = _numba_njit()
-    if njit is None:
-        return None
 
     @njit
     def knn_rows(query, ref, sqdist, idx):  # pragma: no cover - compiled
