@@ -9,6 +9,8 @@ paired differences DRCT − plain and DRCT − RD with their 90 % t intervals, a
 verdict.
 
     python experiments/drct_seeds.py runs/mbptrack-drct [--arms plain rd drct] [--seeds 21 22 23]
+    python experiments/drct_seeds.py runs/mbptrack-drct runs/mbptrack-drct-s21  # later roots'
+                                                    # runs replace earlier ones of the same name
 """
 
 from __future__ import annotations
@@ -85,15 +87,16 @@ def verdict(table: dict[str, dict[int, dict[str, float]]], seeds: list[int]) -> 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("root", type=Path)
+    parser.add_argument("roots", nargs="+", type=Path, metavar="ROOT")
     parser.add_argument("--arms", nargs="+", default=["plain", "rd", "drct"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[21, 22, 23])
     args = parser.parse_args(argv)
-    names = [f"{arm}-s{seed}" for arm in args.arms for seed in args.seeds]
-    runs = {name: load_weather(args.root / "weather" / name) for name in names}
-    start = args.root / "weather" / "start"
-    if start.exists():
-        runs = {"start": load_weather(start), **runs}
+    names = ["start"] + [f"{arm}-s{seed}" for arm in args.arms for seed in args.seeds]
+    runs = {}
+    for name in names:  # from the last root that has it; the start is optional
+        found = [r / "weather" / name for r in args.roots if (r / "weather" / name).exists()]
+        if found or name != "start":
+            runs[name] = load_weather(found[-1] if found else args.roots[-1] / "weather" / name)
     for group in GROUPS:
         print(f"\n{group}: " + ", ".join(METRICS.values()))
         print("\n| run | " + " | ".join(METRICS.values()) + " |")

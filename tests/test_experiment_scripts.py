@@ -378,6 +378,19 @@ def test_drct_seeds_tables_paired_differences_and_verdict(tmp_path, capsys):
     assert "clean +0.00: DRCT helps" in out
 
 
+def test_drct_seeds_takes_a_later_roots_runs(tmp_path, capsys):
+    script = _script("drct_seeds")
+    first, second = tmp_path / "a", tmp_path / "b"
+    for name, clean in (("plain-s21", 40.0), ("drct-s21", 40.0), ("plain-s22", 42.0)):
+        _weather_result(first / "weather" / name, clean, {"fog": [30.0]})
+    _weather_result(second / "weather" / "drct-s21", 50.0, {"fog": [45.0]})  # replaces a's
+    _weather_result(second / "weather" / "drct-s22", 44.0, {"fog": [33.0]})
+    argv = [str(first), str(second), "--arms", "plain", "drct", "--seeds", "21", "22"]
+    assert script.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "| drct-s21 | 50.0 | 45.0 | 0.100 |" in out and "start" not in out
+
+
 def test_drct_seeds_names_a_missing_run(tmp_path):
     script = _script("drct_seeds")
     with pytest.raises(SystemExit, match="plain-s21: expected one"):
