@@ -107,3 +107,17 @@ def test_combine_seeds_means_every_number():
     assert out["per_tracklet"][0]["precision"] == pytest.approx(15.333333333333334)
     assert out["mean"]["success_curve"] == [pytest.approx(43 / 3)] * 2
     assert out["eval_seeds"] == [0, 1, 2] and out["wall_s"] == 3.0 and "boxes" not in out
+
+
+def test_t_intervals_by_hand_and_beyond_the_table():
+    from training.intervals import paired_t_interval, welch_t_interval
+
+    # diffs 1, 2, 3: mean 2, sd 1, half width 2.920 / sqrt(3)
+    mean, half = paired_t_interval([1.0, 2.0, 3.0])
+    assert mean == 2.0 and abs(half - 2.920 / 3**0.5) < 1e-12
+    assert paired_t_interval([4.0]) == (4.0, None)
+    # a: mean 2, var 1; b: mean 0, var 4; se sqrt(1/3 + 4/3); df min(3, 3) - 1 = 2
+    diff, half = welch_t_interval([1.0, 2.0, 3.0], [-2.0, 0.0, 2.0])
+    assert diff == 2.0 and abs(half - 2.920 * (5 / 3) ** 0.5) < 1e-12
+    with pytest.raises(ValueError, match="over 12 values: the table covers 2-11"):
+        paired_t_interval([0.0] * 12)

@@ -229,7 +229,7 @@ def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Te
     b, npts, _ = xyz.shape
     if n > npts:
         raise ValueError(f"cannot sample {n} of {npts} points")
-    kernel = _fps_kernel() if xyz.device.type == "cpu" and xyz.shape[-1] == 3 else None
+    kernel = _fps_kernel() if _compilable(xyz) else None
     if kernel is not None:
         out = torch.empty(b, n, dtype=torch.long)
         if n > 0:
@@ -244,6 +244,17 @@ def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Te
         torch.minimum(mind, (xyz - centre).square_().sum(-1), out=mind)
         cur = mind.argmax(dim=1)
     return torch.stack(picks, dim=1) if picks else torch.empty(b, 0, dtype=torch.long)
+
+
+def _compilable(*points: torch.Tensor) -> bool:
+    """Whether the compiled kernels take these point sets: coordinates ``(B, N, 3)`` on the CPU,
+    all float32 or all float64 (the dtypes numba computes in as torch does)."""
+    dtypes = {p.dtype for p in points}
+    return (
+        all(p.device.type == "cpu" and p.shape[-1] == 3 for p in points)
+        and len(dtypes) == 1
+        and dtypes <= {torch.float32, torch.float64}
+    )
 
 
 def _compiled(build: Callable[[Callable], Callable]) -> Callable[[], Callable | None]:
@@ -338,7 +349,7 @@ def ball_query_pairs(
     with torch.no_grad():  # indices only: no graph through the distances
         b, n = xyz.shape[:2]
         m = centres.shape[1]
-        kernel = _ball_kernel() if xyz.device.type == "cpu" and xyz.shape[-1] == 3 else None
+        kernel = _ball_kernel() if _compilable(xyz, centres) else None
         if kernel is not None and k > 0:
             points = xyz.detach().contiguous().numpy()
             r2 = points.dtype.type(radius * radius)  # the tensor's dtype, as torch's comparison
@@ -472,8 +483,8 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
     """
     if k > ref.shape[1]:
         raise ValueError(f"k = {k} exceeds the {ref.shape[1]} reference points")
-    kernel = _knn_kernel() if query.device.type == "cpu" and query.shape[-1] == 3 else None
-    if kernel is not None and k > 0 and query.dtype == ref.dtype:
+    kernel = _knn_kernel() if _compilable(query, ref) else None
+    if kernel is not None and k > 0:
         b, m = query.shape[:2]
         sd = torch.empty(b, m, k, dtype=query.dtype)
         si = torch.empty(b, m, k, dtype=torch.long)

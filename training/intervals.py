@@ -42,8 +42,18 @@ __all__ = [
 DEFAULT_LEVEL = 0.9
 DEFAULT_RESAMPLES = 2000
 GROUPS = ("observed", "unseen", "mean")
-#: two-sided 90 % Student t quantiles by degrees of freedom (comparisons over 2-6 training seeds)
-T90 = {1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015}
+#: two-sided 90 % Student t quantiles by degrees of freedom (comparisons over 2-11 training seeds)
+T90 = {
+    1: 6.314, 2: 2.920, 3: 2.353, 4: 2.132, 5: 2.015, 6: 1.943, 7: 1.895, 8: 1.860, 9: 1.833,
+    10: 1.812,
+}  # fmt: skip
+
+
+def _t90(df: int) -> float:
+    """The 90 % two-sided t quantile at ``df`` degrees of freedom (``ValueError`` beyond T90)."""
+    if df not in T90:
+        raise ValueError(f"t interval over {df + 1} values: the table covers 2-{max(T90) + 1}")
+    return T90[df]
 
 
 def resample_counts(strata: Sequence[Hashable], resamples: int, seed: int) -> np.ndarray:
@@ -150,7 +160,7 @@ def paired_t_interval(diffs: Sequence[float]) -> tuple[float, float | None]:
     mean = float(np.mean(diffs))
     if len(diffs) < 2:
         return mean, None
-    return mean, T90[len(diffs) - 1] * float(np.std(diffs, ddof=1)) / math.sqrt(len(diffs))
+    return mean, _t90(len(diffs) - 1) * float(np.std(diffs, ddof=1)) / math.sqrt(len(diffs))
 
 
 def welch_t_interval(a: Sequence[float], b: Sequence[float]) -> tuple[float, float | None]:
@@ -161,7 +171,7 @@ def welch_t_interval(a: Sequence[float], b: Sequence[float]) -> tuple[float, flo
     if min(len(a), len(b)) < 2:
         return diff, None
     se = math.sqrt(np.var(a, ddof=1) / len(a) + np.var(b, ddof=1) / len(b))
-    return diff, T90[min(len(a), len(b)) - 1] * se
+    return diff, _t90(min(len(a), len(b)) - 1) * se
 
 
 def check_seeds(seeds: Sequence[int]) -> list[int]:
