@@ -490,8 +490,10 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
         si = torch.empty(b, m, k, dtype=torch.long)
         q, r = query.detach().contiguous().numpy(), ref.detach().contiguous().numpy()
         kernel(q, r, sd.numpy(), si.numpy())
-        if query.requires_grad or ref.requires_grad:  # differentiable distances, same values
-            sd = pairwise_sqdist(query, ref).gather(-1, si)
+        if torch.is_grad_enabled() and (query.requires_grad or ref.requires_grad):
+            # differentiable: the k chosen distances again, in pairwise_sqdist's order (same bits)
+            d = query[:, :, None, :] - gather(ref, si)  # (B, M, k, 3)
+            sd = d[..., 0] * d[..., 0] + d[..., 1] * d[..., 1] + d[..., 2] * d[..., 2]
         return sd, si
     d = pairwise_sqdist(query, ref)
     # a stable sort gives the documented tie order; topk's tie order is unspecified
