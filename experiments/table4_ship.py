@@ -1,7 +1,8 @@
 """Ship a Table IV pilot cell's selected file if it beats both baselines (docs/table4.md).
 
-Reads ``ROOT/select-ARM/selection.json`` (a ``pointtrack select --out``), finds the first-ranked
-candidate's run, and compares that run's pilot test reading (``ROOT/test/RUN/report.json``) with
+Reads ``ROOT/select-ARM/selection.json`` (a ``pointtrack select --out``; ``--select`` names
+another folder), finds the first-ranked candidate's run (or tracker file), and compares its
+test reading (``ROOT/test/RUN/report.json``) with
 the baselines' (``ROOT/test/baselines/report.json``) on observed and unseen Success. On a pass it
 copies ``ROOT/select-ARM/NAME.safetensors`` (``pointtrack select --save``) into the shipped
 checkpoint directory and writes its recipe ``configs/checkpoints/NAME.yaml`` (the file's own
@@ -34,15 +35,18 @@ RECIPE_DIR = Path(__file__).resolve().parents[1] / "configs" / "checkpoints"
 
 
 def selected_run(selection: Path) -> str:
-    """The run folder name of the first-ranked candidate in ``selection`` (``RUN/best.pt``)."""
+    """The name of the first-ranked candidate in ``selection``: its run folder (``RUN/best.pt``)
+    or its file's stem (a tracker file); its test reading is ``ROOT/test/NAME``."""
     try:
         ranking = json.loads(selection.read_text())["ranking"]
         candidate = Path(ranking[0]["candidate"])
     except (OSError, ValueError, KeyError, IndexError) as exc:
         raise SystemExit(f"{selection}: cannot read a pointtrack select ranking ({exc})") from None
-    if candidate.suffix != ".pt":
-        raise SystemExit(f"{selection}: first candidate {candidate} is not a RUN/best.pt")
-    return candidate.parent.name
+    if candidate.suffix == ".pt":
+        return candidate.parent.name
+    if candidate.suffix == ".safetensors":  # a variant of a run (experiments/hold_variants.py)
+        return candidate.stem
+    raise SystemExit(f"{selection}: first candidate {candidate} is not a RUN/best.pt or a file")
 
 
 def gate(root: Path, run: str) -> tuple[bool, list[str]]:
@@ -88,12 +92,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("name", help="shipped name, e.g. p2b-nuscenes1-u")
     parser.add_argument("--dry-run", action="store_true", help="print the verdict only")
     parser.add_argument(
+        "--select", default=None, help="the selection's folder under ROOT (default: select-ARM)"
+    )
+    parser.add_argument(
         "--command", action="append", default=[], help="a command of the recipe (repeatable)"
     )
     parser.add_argument("--checkpoints", type=Path, default=CHECKPOINT_DIR)
     parser.add_argument("--recipes", type=Path, default=RECIPE_DIR)
     args = parser.parse_args(argv)
-    folder = args.root / f"select-{args.arm}"
+    folder = args.root / (args.select or f"select-{args.arm}")
     run = selected_run(folder / "selection.json")
     passed, lines = gate(args.root, run)
     print("\n".join(lines))

@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# Table IV pilot, the still-target test of the nuScenes scene-frame cells (docs/table4.md):
+# per cell, the three seeds' best.pt as trained and with hold_chamfer_m 0.15 / 0.3 / 0.6
+# (experiments/hold_variants.py), ranked by `pointtrack select` on never-trained worlds; the
+# first-ranked gets one test reading; experiments/table4_ship.py ships it if it beats both
+# baselines, then scripts/backfill_provenance.py. Resumable: finished steps are kept.
+#   bash experiments/table4_hold.sh [RUNS]   # RUNS holds table4-pilot-nus1-scene, -nus2-scene
+set -euo pipefail
+runs=${1:-runs}
+export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+world=(--dataset nuscenes --preset default-km --sensor hdl32 --nuscenes-frame scene)
+
+cell() {  # ROOT SETTING ARM NAME
+  local root=$1 setting=$2 arm=$3 name=$4 out="$1/select-hold-$3" seed
+  local candidates=()
+  for seed in 0 1 2; do candidates+=("$root/p2b-$arm-s$seed/best.pt"); done
+  mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
+    "$root/p2b-$arm-s0" "$root/p2b-$arm-s1" "$root/p2b-$arm-s2" --holds 0.15 0.3 0.6 \
+    --out "$root/hold")
+  if [ ! -e "$out/selection.json" ]; then
+    pointtrack select "${candidates[@]}" --setting "$setting" "${world[@]}" --train-world 0 \
+      --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/select-hold-$arm.log" 2>&1
+  fi
+  local chosen
+  chosen=$(python -c "import json,sys; print(json.load(open(sys.argv[1]))['ranking'][0]['candidate'])" \
+    "$out/selection.json")
+  local test_name
+  case $chosen in
+    *.pt) test_name=$(basename "$(dirname "$chosen")") ;;
+    *) test_name=$(basename "$chosen" .safetensors) ;;
+  esac
+  if [ ! -e "$root/test/$test_name/done" ]; then
+    pointtrack eval --tracker "$chosen" "${world[@]}" --seed 0 --split test --setting "$setting" \
+      --eval-seeds 0 1 2 --no-progress --out "$root/test/$test_name" \
+      > "$root/logs/eval-$test_name.log" 2>&1
+    touch "$root/test/$test_name/done"
+  fi
+  python experiments/table4_ship.py "$root" "$arm" "$name" --select "select-hold-$arm" \
+    --command "WORLD=\"${world[*]}\" bash experiments/table4_pilot.sh runs/$(basename "$root") $setting" \
+    --command "bash experiments/table4_hold.sh runs   # hold variants, pointtrack select, the gate"
+}
+
+for n in 1 2; do
+  for arm in none decorrelation; do
+    suffix=$([ "$arm" = none ] && echo u || echo w)
+    cell "$runs/table4-pilot-nus$n-scene" "nuscenes-$n" "$arm" "p2b-nuscenes$n-$suffix"
+  done
+done
+python scripts/backfill_provenance.py
