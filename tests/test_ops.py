@@ -330,6 +330,25 @@ def test_knn_compiled_equals_the_stable_sort(seed, monkeypatch):
     assert ref.grad is not None and torch.isfinite(ref.grad).all()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_hash_orders_compiled_equal_the_torch_chains(dtype, monkeypatch):
+    """The compiled hash against the torch chains: two clouds of several rows with duplicated
+    points (occurrence ranks), negative coordinates and coordinates half a quantum apart
+    (round half to even): the same orders bit for bit."""
+    if ops._hash_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    g = torch.Generator().manual_seed(0)
+    search = ((torch.rand(3, 1024, 3, generator=g) * 20 - 10) * 4).round() / 4
+    search[:, 512:] = search[:, :512].clone()
+    search[0, :8, 0] = (torch.arange(8, dtype=torch.float64) + 0.5) * 1e-4  # exact halves
+    template = torch.randn(3, 5, 3, generator=g)
+    clouds = [template.to(dtype), search.to(dtype)]
+    compiled = ops.hash_orders(clouds, [3, 4])
+    monkeypatch.setattr(ops, "_hash_kernel", lambda: None)
+    reference = ops.hash_orders(clouds, [3, 4])
+    assert all(torch.equal(a, b) for a, b in zip(compiled, reference, strict=True))
+
+
 def _chamfer_ref(a, am, b, bm):
     """Loops over the masked points, float64."""
     out = []

@@ -114,7 +114,7 @@ class SetAbstraction(nn.Module):
         per_point, per_centre = self.point_terms(xyz, feats, centres)
         idx = ops.ball_query(self.radius, self.k, xyz, centres)
         pre = ops.group(per_point, idx) - per_centre[:, :, None, :]  # (B, n, k, C1)
-        return centres, max_pool(self.mlp.forward_from(0, pre), 2)
+        return centres, max_pool(self.mlp.forward_from(0, pre, fresh=True), 2)
 
     def ragged(
         self,

@@ -86,7 +86,7 @@ class BoxAwareFusion(nn.Module):
         pre = ops.group(per_t, nbr)  # (B, M_S, k, H)
         if self.use_search_feature:
             pre = pre + (s_feat @ w[:, t_in.shape[-1] :].t())[:, :, None, :]
-        z = self.post(max_pool(self.mlp.forward_from(0, pre), 2))
+        z = self.post(max_pool(self.mlp.forward_from(0, pre, fresh=True), 2))
         return z, s_bc
 
 

@@ -103,7 +103,7 @@ class VotingHead(nn.Module):
         if self.training or not self.fast_eval:  # dense: BatchNorm statistics over every slot
             idx = ops.ball_query(radius, k, vote_xyz, centres)  # (B, P, k)
             pre = ops.group(per_vote, idx) - per_centre[:, :, None, :]  # (B, P, k, V)
-            cluster = max_pool(self.aggregate.forward_from(0, pre), 2)  # (B, P, V)
+            cluster = max_pool(self.aggregate.forward_from(0, pre, fresh=True), 2)  # (B, P, V)
         else:  # the real cluster members only: the same max, less work
             group, point = ops.ball_query_pairs(radius, k, vote_xyz, centres)
             cluster = grouped_max(self.aggregate, per_vote, per_centre, group, point)

@@ -116,30 +116,38 @@ class MLP(nn.Module):
             shift = shift + lin.bias * scale
         return lin.weight * scale[:, None], shift
 
-    def finish(self, i: int, pre: torch.Tensor) -> torch.Tensor:
-        """BatchNorm (unless folded: the fast eval path) and ReLU of layer ``i`` -> a new tensor."""
+    def finish(self, i: int, pre: torch.Tensor, *, fresh: bool = False) -> torch.Tensor:
+        """BatchNorm (unless folded: the fast eval path) and ReLU of layer ``i`` -> a new tensor;
+        with ``fresh`` (``pre`` is a temporary nobody else reads) the ReLU may rectify it in
+        place: the same values and gradients, without allocating and writing another tensor
+        (about half a ReLU's cost at these sizes)."""
         if not self.activated[i]:
             return pre
         if self.training or not self.fast_eval:
             shape = pre.shape
             pre = self.norms[i](pre.reshape(-1, shape[-1])).reshape(shape)
-        return F.relu(pre)
+            fresh = True  # BatchNorm's output (its backward reads its input, not its output)
+        return F.relu_(pre) if fresh else F.relu(pre)
 
-    def forward_from(self, i: int, pre: torch.Tensor) -> torch.Tensor:
-        """Continue from the pre-activation of layer ``i`` (its ``linear_params`` applied)."""
-        return self.hidden_from(i, pre, len(self.linears))
+    def forward_from(self, i: int, pre: torch.Tensor, *, fresh: bool = False) -> torch.Tensor:
+        """Continue from the pre-activation of layer ``i`` (its ``linear_params`` applied;
+        ``fresh``: see :meth:`finish`)."""
+        return self.hidden_from(i, pre, len(self.linears), fresh=fresh)
 
-    def hidden_from(self, i: int, pre: torch.Tensor, stop: int) -> torch.Tensor:
-        """From the pre-activation of layer ``i`` to the input of layer ``stop > i``."""
-        x = self.finish(i, pre)
+    def hidden_from(
+        self, i: int, pre: torch.Tensor, stop: int, *, fresh: bool = False
+    ) -> torch.Tensor:
+        """From the pre-activation of layer ``i`` to the input of layer ``stop > i``
+        (``fresh``: see :meth:`finish`)."""
+        x = self.finish(i, pre, fresh=fresh)
         for j in range(i + 1, stop):
             w, b = self.linear_params(j)
-            x = self.finish(j, F.linear(x, w, b))
+            x = self.finish(j, F.linear(x, w, b), fresh=True)
         return x
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         w, b = self.linear_params(0)
-        return self.forward_from(0, F.linear(x, w, b))
+        return self.forward_from(0, F.linear(x, w, b), fresh=True)
 
 
 def dense_max(
@@ -149,17 +157,18 @@ def dense_max(
     pool: Callable[[torch.Tensor, int], torch.Tensor] = max_pool,
 ) -> torch.Tensor:
     """``pool(mlp.forward_from(0, pre), dim)`` for neighbourhoods laid out densely (``pre``: the
-    first layer's pre-activation, e.g. ``(B, M, k, C1)``); the MLP must end in a ReLU. ``pool``
+    first layer's pre-activation, e.g. ``(B, M, k, C1)``, a temporary that the ReLU may
+    overwrite); the MLP must end in a ReLU. ``pool``
     is the training path's max (:func:`max_pool`, or ``torch.amax`` for its even split of the
     gradient among ties). In eval (fast path) the last Linear's bias and the ReLU act after the
     max, on one row per group instead of ``k`` (monotone: the same maxima up to the rounding of
     the bias add)."""
     last = len(mlp.linears) - 1
     if mlp.training or not mlp.fast_eval or last == 0:
-        return pool(mlp.forward_from(0, pre), dim)
+        return pool(mlp.forward_from(0, pre, fresh=True), dim)
     w, bias = mlp.linear_params(last)
-    out = F.linear(mlp.hidden_from(0, pre, last), w).amax(dim=dim)
-    return mlp.finish(last, out if bias is None else out + bias)
+    out = F.linear(mlp.hidden_from(0, pre, last, fresh=True), w).amax(dim=dim)
+    return mlp.finish(last, out if bias is None else out + bias, fresh=True)
 
 
 def grouped_max(
@@ -187,17 +196,17 @@ def grouped_max(
     last = len(mlp.linears) - 1
     bias = None
     if plain:  # BatchNorm on batch statistics (training), or unfolded: every member's output
-        h = mlp.forward_from(0, pre)  # (P, C)
+        h = mlp.forward_from(0, pre, fresh=True)  # (P, C)
     elif last == 0:
         h = pre
     else:  # eval: the last bias and ReLU are monotone, so they go after the max (M rows, not
         # P): max_j relu(x_j + b) = relu(max_j x_j + b), bit for bit (rounding is monotone too)
         w, bias = mlp.linear_params(last)
-        h = F.linear(mlp.hidden_from(0, pre, last), w)
+        h = F.linear(mlp.hidden_from(0, pre, last, fresh=True), w)
     out = h.new_full((b * m, h.shape[-1]), -torch.inf)  # every group has a member
     out.scatter_reduce_(0, group[:, None].expand(-1, h.shape[-1]), h, "amax")
     if plain:
         return out.view(b, m, -1)
     if bias is not None:
         out = out + bias
-    return mlp.finish(last, out).view(b, m, -1)
+    return mlp.finish(last, out, fresh=True).view(b, m, -1)

@@ -146,7 +146,7 @@ class SegPointNet(nn.Module):
         w, b = self.head.linear_params(0)
         c = local.shape[-1]
         pre = F.linear(local, w[:, :c], b) + F.linear(pooled, w[:, c:])[:, None, :]
-        return self.head.forward_from(0, pre)
+        return self.head.forward_from(0, pre, fresh=True)
 
 
 def _rot_z(yaw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -134,14 +134,22 @@ def hash_orders(
     """:func:`hash_order` of each cloud ``(B, N_i, 3)`` with its seed -> ``[(B, N_i)]``, the
     same orders bit for bit, hashed side by side (one pass of the elementwise hash, which is
     most of the cost at batch 1)."""
+    starts = [(seed * 0x9E3779B1 + 0x7F4A7C15) & _MASK32 for seed in seeds]
+    starts2 = [(seed * 0x85EBCA77 + 0x165667B1) & _MASK32 for seed in seeds]
+    kernel = _hash_kernel() if _compilable(*clouds) else None
+    if kernel is not None:
+        orders = []
+        for cloud, start, start2 in zip(clouds, starts, starts2, strict=True):
+            out = torch.empty(cloud.shape[:2], dtype=torch.long)
+            kernel(cloud.detach().contiguous().numpy(), float(quantum), start, start2, out.numpy())
+            orders.append(out)
+        return orders
     sizes = [c.shape[1] for c in clouds]
     xyz = torch.cat(list(clouds), dim=1)
     dev = xyz.device
     q = (torch.round(xyz.double() / quantum).long() & _MASK32).movedim(-1, 0)  # (3, B, N)
     # two independent 32-bit hash chains, run side by side (chain, B, N): half the small ops
     inputs = torch.stack([q, _mul32(q, 0x27D4EB2F)], dim=1)  # (3, 2, B, N)
-    starts = [(seed * 0x9E3779B1 + 0x7F4A7C15) & _MASK32 for seed in seeds]
-    starts2 = [(seed * 0x85EBCA77 + 0x165667B1) & _MASK32 for seed in seeds]
     size = torch.tensor(sizes, device=dev)
     h = torch.stack([torch.tensor(starts, device=dev), torch.tensor(starts2, device=dev)])
     h = h.repeat_interleave(size, dim=1, output_size=xyz.shape[1])[:, None, :]  # (2, 1, N)
@@ -272,6 +280,52 @@ def _compiled(build: Callable[[Callable], Callable]) -> Callable[[], Callable | 
 
     kernel.__doc__ = build.__doc__
     return kernel
+
+
+@_compiled
+def _hash_kernel(njit: Callable) -> Callable:
+    """The compiled :func:`hash_orders` of one cloud ``(xyz (B, N, 3), quantum, start, start2,
+    out (B, N) int64)``: the same two hash chains, occurrence ranks and stable sorts on unsigned
+    64-bit integers (32-bit values), so the same orders bit for bit, without the ~60 elementwise
+    tensor ops (1.4 ms of a batch-1 ``act``)."""
+    m32, one = np.uint64(_MASK32), np.uint64(1)
+
+    @njit
+    def mix32(h):  # pragma: no cover - compiled
+        h ^= h >> np.uint64(16)
+        h = (h * np.uint64(0x85EBCA6B)) & m32
+        h ^= h >> np.uint64(13)
+        h = (h * np.uint64(0xC2B2AE35)) & m32
+        return h ^ (h >> np.uint64(16))
+
+    @njit
+    def hash_rows(xyz, quantum, start, start2, out):  # pragma: no cover - compiled
+        b, n, _ = xyz.shape
+        key = np.empty(n, np.int64)
+        final = np.empty(n, np.int64)
+        for r in range(b):
+            for j in range(n):
+                h, h2 = np.uint64(start), np.uint64(start2)
+                for c in range(3):
+                    q = np.int64(np.rint(np.float64(xyz[r, j, c]) / quantum))
+                    q = np.uint64(q & np.int64(_MASK32))
+                    h = mix32(h ^ q)
+                    h2 = mix32(h2 ^ ((q * np.uint64(0x27D4EB2F)) & m32))
+                key[j] = np.int64(((h >> one) << np.uint64(32)) | h2)
+            order = np.argsort(key, kind="mergesort")  # stable, as torch.sort(stable=True)
+            rank = 0
+            for i in range(n):
+                k = key[order[i]]
+                rank = rank + 1 if i > 0 and k == key[order[i - 1]] else 0
+                low, high = np.uint64(k) & m32, np.uint64(k) >> np.uint64(32)
+                mixed = (np.uint64(rank + 1) * np.uint64(0x9E3779B1)) & m32
+                spread = mix32(mix32(low ^ mixed) ^ high)
+                final[i] = np.int64(((spread >> one) << np.uint64(31)) | high)
+            second = np.argsort(final, kind="mergesort")
+            for i in range(n):
+                out[r, i] = order[second[i]]
+
+    return hash_rows
 
 
 @_compiled

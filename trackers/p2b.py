@@ -74,7 +74,7 @@ class P2BFusion(nn.Module):
         a, w = self.first_layer(t_xyz, t_feat)
         cos = self.cosine(t_feat, s_feat)  # (B, M_T, M_S)
         pre = torch.addcmul(a[:, :, None, :], cos[..., None], w)  # (B, M_T, M_S, H)
-        return self.post(max_pool(self.mlp.forward_from(0, pre), 1))
+        return self.post(max_pool(self.mlp.forward_from(0, pre, fresh=True), 1))
 
     def forward_fast(
         self, t_xyz: torch.Tensor, t_feat: torch.Tensor, s_feat: torch.Tensor
@@ -87,8 +87,8 @@ class P2BFusion(nn.Module):
         pre_max = p2b_knots.tfa_pre_max(self.mlp, a, w, cos)  # (B, M_S, H) or None
         if pre_max is None:
             pre = torch.addcmul(a[:, :, None, :], cos[..., None], w)
-            return self.post(max_pool(self.mlp.forward_from(0, pre), 1))
-        return self.post(self.mlp.finish(len(self.mlp.linears) - 1, pre_max))
+            return self.post(max_pool(self.mlp.forward_from(0, pre, fresh=True), 1))
+        return self.post(self.mlp.finish(len(self.mlp.linears) - 1, pre_max, fresh=True))
 
 
 @register("p2b")

@@ -67,7 +67,7 @@ def pre_activation(
     x = torch.addcmul(a[:, :, None, :], c[..., None], w)
     for i in range(1, layer + 1):
         wi, bi = mlp.linear_params(i)
-        x = F.linear(mlp.finish(i - 1, x), wi, bi)
+        x = F.linear(mlp.finish(i - 1, x, fresh=True), wi, bi)
     return x
 
 

@@ -321,9 +321,10 @@ def read_scan(
             "(x, y, z, intensity float32)"
         )
     points = np.fromfile(path, dtype="<f4").reshape(-1, 4)
-    finite = np.isfinite(points).all(axis=1)
-    dropped = int(len(points) - np.count_nonzero(finite))
-    if dropped:
+    dropped = 0
+    if not np.isfinite(points).all():  # a flat test is ~25x cheaper than the per-row mask
+        finite = np.isfinite(points).all(axis=1)
+        dropped = int(len(points) - np.count_nonzero(finite))
         points = points[finite]
         warnings.warn(
             f"scan file {path}: dropped {dropped} non-finite points",

@@ -182,9 +182,9 @@ def read_pcd_bin(path: str | Path) -> np.ndarray:
     raw = np.fromfile(path, dtype="<f4").reshape(-1, POINT_FIELDS)
     points = raw[:, :4].astype(np.float32)
     points[:, 3] *= np.float32(1.0 / 255.0)
-    finite = np.isfinite(points).all(axis=1)
-    dropped = int(len(points) - np.count_nonzero(finite))
-    if dropped:
+    if not np.isfinite(points).all():  # a flat test is ~25x cheaper than the per-row mask
+        finite = np.isfinite(points).all(axis=1)
+        dropped = int(len(points) - np.count_nonzero(finite))
         points = points[finite]
         warnings.warn(
             f"nuScenes scan file {path}: dropped {dropped} non-finite points",
