@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from trackers import ops
+from trackers import kernels, ops
 
 
 def _points(b=2, n=300, seed=0, scale=1.0):
@@ -206,10 +206,10 @@ def test_hash_order_spreads_duplicates_like_a_random_permutation():
 def _ball_path(path: str, monkeypatch) -> None:
     """Force one path of ``ops.ball_query_pairs``: the compiled scan, the grid or every pair."""
     if path == "compiled":
-        if ops._ball_kernel() is None:
+        if kernels.ball_kernel() is None:
             pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
         return
-    monkeypatch.setattr(ops, "_ball_kernel", lambda: None)
+    monkeypatch.setattr(kernels, "ball_kernel", lambda: None)
     monkeypatch.setattr(ops, "_DENSE_PAIRS", 0 if path == "grid" else 10**9)
     monkeypatch.setattr(ops, "_GRID_SHARE", 0)  # the grid even where its candidates are many
 
@@ -291,7 +291,7 @@ def test_ball_query_grid_cells_find_every_hit(seed, monkeypatch):
 def test_ball_query_compiled_scan_equals_every_pair(seed):
     """The compiled scan against the dense torch test on clustered crops with copies, points
     exactly one radius away (float32 and float64) and centres without a hit."""
-    if ops._ball_kernel() is None:
+    if kernels.ball_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
     g = torch.Generator().manual_seed(seed)
     radius, k = [0.3, 0.5, 0.25, 1.0][seed], [32, 16, 48, 1][seed]
@@ -314,7 +314,7 @@ def test_ball_query_compiled_scan_equals_every_pair(seed):
 def test_knn_compiled_equals_the_stable_sort(seed, monkeypatch):
     """The compiled k nearest neighbours against the stable sort of every distance, with ties
     (coordinates on a coarse grid, every point twice): the same distances and indices."""
-    if ops._knn_kernel() is None:
+    if kernels.knn_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
     g = torch.Generator().manual_seed(seed)
     b, m, n, k = 2, (5, 100, 512)[seed], (7, 300, 1024)[seed], (1, 8, 16)[seed]
@@ -323,7 +323,7 @@ def test_knn_compiled_equals_the_stable_sort(seed, monkeypatch):
     ref[:, n // 2 :] = ref[:, : n - n // 2].clone()
     ref.requires_grad_(True)
     compiled = ops.knn(k, query, ref)
-    monkeypatch.setattr(ops, "_knn_kernel", lambda: None)
+    monkeypatch.setattr(kernels, "knn_kernel", lambda: None)
     reference = ops.knn(k, query, ref)
     assert torch.equal(compiled[1], reference[1]) and torch.equal(compiled[0], reference[0])
     compiled[0].sum().backward()  # the distances stay differentiable
@@ -335,7 +335,7 @@ def test_hash_orders_compiled_equal_the_torch_chains(dtype, monkeypatch):
     """The compiled hash against the torch chains: two clouds of several rows with duplicated
     points (occurrence ranks), negative coordinates and coordinates half a quantum apart
     (round half to even): the same orders bit for bit."""
-    if ops._hash_kernel() is None:
+    if kernels.hash_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
     g = torch.Generator().manual_seed(0)
     search = ((torch.rand(3, 1024, 3, generator=g) * 20 - 10) * 4).round() / 4
@@ -344,9 +344,50 @@ def test_hash_orders_compiled_equal_the_torch_chains(dtype, monkeypatch):
     template = torch.randn(3, 5, 3, generator=g)
     clouds = [template.to(dtype), search.to(dtype)]
     compiled = ops.hash_orders(clouds, [3, 4])
-    monkeypatch.setattr(ops, "_hash_kernel", lambda: None)
+    monkeypatch.setattr(kernels, "hash_kernel", lambda: None)
     reference = ops.hash_orders(clouds, [3, 4])
     assert all(torch.equal(a, b) for a, b in zip(compiled, reference, strict=True))
+
+
+def test_distinct_points_and_nearest_distances_compiled_equal_torch(monkeypatch):
+    """The compiled distinct points and nearest distances against the torch paths on an env-like
+    cloud (resampled copies, padding rows, a mask): the same distinct points (as a set), the
+    same layout's coordinates, and nearest distances and Chamfer distances bit for bit."""
+    if kernels.distinct_kernel() is None or kernels.nearest_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    g = torch.Generator().manual_seed(0)
+    base = torch.rand(300, 3, generator=g) * 4 - 2
+    cloud = base[torch.randint(0, 300, (1024,), generator=g)]  # copies, as the env resamples
+    cloud[1000:] = 0  # padding
+    cloud[::7, 2] += 0.5  # copies of (x, y) at another z
+    mask = (cloud != 0).any(-1) & (torch.rand(1024, generator=g) > 0.1)
+    crops = torch.rand(2, 64, 3, generator=g) * 4 - 2
+    crop_in = torch.rand(2, 64, generator=g) > 0.2
+
+    def run():
+        unique, layout = ops.distinct_points(cloud, mask)
+        near = ops.nearest_distances(crops, crop_in, unique)
+        chamfer = ops.chamfer_distance(cloud[None], mask[None], crops[:1], crop_in[:1])
+        return unique, layout, near, chamfer
+
+    compiled = run()
+    monkeypatch.setattr(kernels, "distinct_kernel", lambda: None)
+    monkeypatch.setattr(kernels, "nearest_kernel", lambda: None)
+    reference = run()
+    for unique, layout, _, _ in (compiled, reference):
+        assert torch.equal(
+            torch.where(mask[:, None], unique[layout.clamp(max=len(unique) - 1)], 0),
+            torch.where(mask[:, None], cloud, 0),
+        )
+        assert bool((layout[~mask] == len(unique)).all())
+    assert {tuple(r) for r in compiled[0].tolist()} == {tuple(r) for r in reference[0].tolist()}
+    # nearest distances from the crops (per crop point) are order-free; the other side is per
+    # distinct point: compare through each masked point's layout
+    assert torch.equal(compiled[2][0], reference[2][0])
+    c_b = compiled[2][1][:, compiled[1][mask]]
+    r_b = reference[2][1][:, reference[1][mask]]
+    assert torch.equal(c_b, r_b)
+    assert torch.equal(compiled[3], reference[3])
 
 
 def _chamfer_ref(a, am, b, bm):
@@ -431,10 +472,10 @@ def _fps_before(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Tensor:
 
 @pytest.mark.parametrize("compiled", [True, False])
 def test_farthest_point_sample_equals_the_previous_implementation(compiled, monkeypatch):
-    if compiled and ops._fps_kernel() is None:
+    if compiled and kernels.fps_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
     if not compiled:
-        monkeypatch.setattr(ops, "_fps_kernel", lambda: None)
+        monkeypatch.setattr(kernels, "fps_kernel", lambda: None)
     g = torch.Generator().manual_seed(0)
     for trial in range(24):
         b, n = 1 + trial % 3, (7, 100, 1024, 513)[trial % 4]

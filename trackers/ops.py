@@ -1,4 +1,5 @@
-"""Point-set operations in pure torch, batched over a leading dimension, no compiled extension.
+"""Point-set operations in torch, batched over a leading dimension (with the ``fast`` extra
+some run as compiled CPU kernels, :mod:`trackers.kernels`, with the same results).
 
 Shapes: ``B`` batch, ``N`` points, ``M`` query points (centres), ``k`` neighbours, ``C`` channels.
 Indices are ``int64``. Every op gives the same result on CPU and GPU (the orderings below are
@@ -15,13 +16,13 @@ integer or comparison based; distances are computed the same way on both).
 
 from __future__ import annotations
 
-import functools
 import itertools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
-import numpy as np
 import torch
+
+from trackers import kernels
 
 __all__ = [
     "ball_query",
@@ -136,7 +137,7 @@ def hash_orders(
     most of the cost at batch 1)."""
     starts = [(seed * 0x9E3779B1 + 0x7F4A7C15) & _MASK32 for seed in seeds]
     starts2 = [(seed * 0x85EBCA77 + 0x165667B1) & _MASK32 for seed in seeds]
-    kernel = _hash_kernel() if _compilable(*clouds) else None
+    kernel = kernels.hash_kernel() if kernels.compilable(*clouds) else None
     if kernel is not None:
         orders = []
         for cloud, start, start2 in zip(clouds, starts, starts2, strict=True):
@@ -229,15 +230,16 @@ def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Te
     Starts at index ``start`` of every row; each next point is the one farthest from those
     chosen (ties: the lowest index, as ``argmax``). The ``n`` iterations are sequential by
     nature: on CPU with numba installed (``pip install 'pointtrack[fast]'``) they run compiled
-    (:func:`_fps_kernel`, ~10-20x faster than a Python loop of torch ops at batch 1); otherwise
-    (or on another device) as a loop vectorised over the batch and the points. Both compute
+    (:func:`trackers.kernels.fps_kernel`, ~10-20x faster than a Python loop of torch ops at
+    batch 1); otherwise (or on another device) as a loop vectorised over the batch and the
+    points. Both compute
     the squared distances with the same float32 operations in the same order
     (``(dx^2 + dy^2) + dz^2``), so they pick the same indices.
     """
     b, npts, _ = xyz.shape
     if n > npts:
         raise ValueError(f"cannot sample {n} of {npts} points")
-    kernel = _fps_kernel() if _compilable(xyz) else None
+    kernel = kernels.fps_kernel() if kernels.compilable(xyz) else None
     if kernel is not None:
         out = torch.empty(b, n, dtype=torch.long)
         if n > 0:
@@ -252,107 +254,6 @@ def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Te
         torch.minimum(mind, (xyz - centre).square_().sum(-1), out=mind)
         cur = mind.argmax(dim=1)
     return torch.stack(picks, dim=1) if picks else torch.empty(b, 0, dtype=torch.long)
-
-
-def _compilable(*points: torch.Tensor) -> bool:
-    """Whether the compiled kernels take these point sets: coordinates ``(B, N, 3)`` on the CPU,
-    all float32 or all float64 (the dtypes numba computes in as torch does)."""
-    dtypes = {p.dtype for p in points}
-    return (
-        all(p.device.type == "cpu" and p.shape[-1] == 3 for p in points)
-        and len(dtypes) == 1
-        and dtypes <= {torch.float32, torch.float64}
-    )
-
-
-def _compiled(build: Callable[[Callable], Callable]) -> Callable[[], Callable | None]:
-    """A kernel getter: ``build(njit)`` with numba's ``njit(cache=True, nogil=True)`` on the
-    first call (compiled on first use, cached on disk by numba), ``None`` without numba (the
-    ``fast`` extra): the callers then run their torch paths."""
-
-    @functools.cache
-    def kernel() -> Callable | None:
-        try:
-            import numba
-        except ImportError:
-            return None
-        return build(numba.njit(cache=True, nogil=True))
-
-    kernel.__doc__ = build.__doc__
-    return kernel
-
-
-@_compiled
-def _hash_kernel(njit: Callable) -> Callable:
-    """The compiled :func:`hash_orders` of one cloud ``(xyz (B, N, 3), quantum, start, start2,
-    out (B, N) int64)``: the same two hash chains, occurrence ranks and stable sorts on unsigned
-    64-bit integers (32-bit values), so the same orders bit for bit, without the ~60 elementwise
-    tensor ops (1.4 ms of a batch-1 ``act``)."""
-    m32, one = np.uint64(_MASK32), np.uint64(1)
-
-    @njit
-    def mix32(h):  # pragma: no cover - compiled
-        h ^= h >> np.uint64(16)
-        h = (h * np.uint64(0x85EBCA6B)) & m32
-        h ^= h >> np.uint64(13)
-        h = (h * np.uint64(0xC2B2AE35)) & m32
-        return h ^ (h >> np.uint64(16))
-
-    @njit
-    def hash_rows(xyz, quantum, start, start2, out):  # pragma: no cover - compiled
-        b, n, _ = xyz.shape
-        key = np.empty(n, np.int64)
-        final = np.empty(n, np.int64)
-        for r in range(b):
-            for j in range(n):
-                h, h2 = np.uint64(start), np.uint64(start2)
-                for c in range(3):
-                    q = np.int64(np.rint(np.float64(xyz[r, j, c]) / quantum))
-                    q = np.uint64(q & np.int64(_MASK32))
-                    h = mix32(h ^ q)
-                    h2 = mix32(h2 ^ ((q * np.uint64(0x27D4EB2F)) & m32))
-                key[j] = np.int64(((h >> one) << np.uint64(32)) | h2)
-            order = np.argsort(key, kind="mergesort")  # stable, as torch.sort(stable=True)
-            rank = 0
-            for i in range(n):
-                k = key[order[i]]
-                rank = rank + 1 if i > 0 and k == key[order[i - 1]] else 0
-                low, high = np.uint64(k) & m32, np.uint64(k) >> np.uint64(32)
-                mixed = (np.uint64(rank + 1) * np.uint64(0x9E3779B1)) & m32
-                spread = mix32(mix32(low ^ mixed) ^ high)
-                final[i] = np.int64(((spread >> one) << np.uint64(31)) | high)
-            second = np.argsort(final, kind="mergesort")
-            for i in range(n):
-                out[r, i] = order[second[i]]
-
-    return hash_rows
-
-
-@_compiled
-def _fps_kernel(njit: Callable) -> Callable:
-    """The compiled FPS loop ``(xyz (B, N, 3) float ndarray, n, start, out (B, n) int64)``, or
-    ``None`` without numba (imported and compiled on first use; cached on disk by numba)."""
-
-    @njit
-    def fps_rows(xyz, n, start, out):  # pragma: no cover - compiled
-        b, npts, _ = xyz.shape
-        mind = np.empty(npts, dtype=xyz.dtype)
-        for r in range(b):
-            mind[:] = np.inf
-            cur = start
-            for i in range(n):
-                out[r, i] = cur
-                cx, cy, cz = xyz[r, cur, 0], xyz[r, cur, 1], xyz[r, cur, 2]
-                best, arg = -np.inf, 0
-                for j in range(npts):
-                    dx, dy, dz = xyz[r, j, 0] - cx, xyz[r, j, 1] - cy, xyz[r, j, 2] - cz
-                    m = min(mind[j], dx * dx + dy * dy + dz * dz)
-                    mind[j] = m
-                    if m > best:  # strictly: the lowest index wins a tie, as argmax
-                        best, arg = m, j
-                cur = arg
-
-    return fps_rows
 
 
 def ball_query(
@@ -395,15 +296,16 @@ def ball_query_pairs(
     Per centre the first ``k`` hits in index order - the slots of ``ball_query`` below its count;
     a centre without hits gets the one pair ``(centre, point 0)``, as its all-zero ``idx`` row.
     On CPU with numba (the ``fast`` extra) a compiled scan that stops at each centre's ``k``-th
-    hit (:func:`_ball_kernel`). Otherwise small problems test every pair (:func:`_ball_dense`);
-    larger ones only the points of the 3 x 3 grid cells around each centre (:func:`_ball_grid`),
-    unless those are a large share of all pairs (clustered clouds). The hit test is the same
+    hit (:func:`trackers.kernels.ball_kernel`). Otherwise small problems test every pair
+    (:func:`_ball_dense`), larger ones only the points of the 3 x 3 grid cells around each
+    centre (:func:`_ball_grid`), unless those are a large share of all pairs (clustered
+    clouds). The hit test is the same
     distance formula on every path, so the pairs are the same.
     """
     with torch.no_grad():  # indices only: no graph through the distances
         b, n = xyz.shape[:2]
         m = centres.shape[1]
-        kernel = _ball_kernel() if _compilable(xyz, centres) else None
+        kernel = kernels.ball_kernel() if kernels.compilable(xyz, centres) else None
         if kernel is not None and k > 0:
             points = xyz.detach().contiguous().numpy()
             r2 = points.dtype.type(radius * radius)  # the tensor's dtype, as torch's comparison
@@ -414,41 +316,6 @@ def ball_query_pairs(
         else:
             group, point = _ball_grid(radius, k, xyz, centres)
         return group, point + torch.div(group, m, rounding_mode="floor") * n
-
-
-@_compiled
-def _ball_kernel(njit: Callable) -> Callable:
-    """The compiled ball query ``(xyz (B, N, 3), centres (B, M, 3), r2, k) -> (group (P,),
-    point (P,))`` of :func:`ball_query_pairs` (flat indices), or ``None`` without numba. Per
-    centre it scans the points in index order and stops at the ``k``-th hit; the squared
-    distance is ``pairwise_sqdist``'s, ``(dx^2 + dy^2) + dz^2`` in the points' dtype, so the
-    pairs are the same as the torch paths'."""
-
-    @njit
-    def ball_pairs(xyz, centres, r2, k):  # pragma: no cover - compiled
-        b, n, _ = xyz.shape
-        m = centres.shape[1]
-        group = np.empty(b * m * k, dtype=np.int64)
-        point = np.empty(b * m * k, dtype=np.int64)
-        p = 0
-        for r in range(b):
-            for i in range(m):
-                cx, cy, cz = centres[r, i, 0], centres[r, i, 1], centres[r, i, 2]
-                found = 0
-                for j in range(n):
-                    dx, dy, dz = cx - xyz[r, j, 0], cy - xyz[r, j, 1], cz - xyz[r, j, 2]
-                    if dx * dx + dy * dy + dz * dz < r2:
-                        group[p], point[p] = r * m + i, r * n + j
-                        p += 1
-                        found += 1
-                        if found == k:
-                            break
-                if found == 0:  # no hit: the pair (centre, point 0)
-                    group[p], point[p] = r * m + i, r * n
-                    p += 1
-        return group[:p], point[:p]
-
-    return ball_pairs
 
 
 #: :func:`ball_query_pairs` tests every pair up to this many (``B * M * N``), else grid cells.
@@ -537,7 +404,7 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
     """
     if k > ref.shape[1]:
         raise ValueError(f"k = {k} exceeds the {ref.shape[1]} reference points")
-    kernel = _knn_kernel() if _compilable(query, ref) else None
+    kernel = kernels.knn_kernel() if kernels.compilable(query, ref) else None
     if kernel is not None and k > 0:
         b, m = query.shape[:2]
         sd = torch.empty(b, m, k, dtype=query.dtype)
@@ -553,40 +420,6 @@ def knn(k: int, query: torch.Tensor, ref: torch.Tensor) -> tuple[torch.Tensor, t
     # a stable sort gives the documented tie order; topk's tie order is unspecified
     sd, si = torch.sort(d, dim=-1, stable=True)
     return sd[..., :k], si[..., :k]
-
-
-@_compiled
-def _knn_kernel(njit: Callable) -> Callable:
-    """The compiled :func:`knn` for coordinates ``(query (B, M, 3), ref (B, N, 3), sqdist (B,
-    M, k) out, idx (B, M, k) out)``, or ``None`` without numba: per query an insertion into the
-    ``k`` best so far, a later point replacing only a strictly farther one (ties: lower index
-    first, as the stable sort), with ``pairwise_sqdist``'s ``(dx^2 + dy^2) + dz^2``."""
-
-    @njit
-    def knn_rows(query, ref, sqdist, idx):  # pragma: no cover - compiled
-        b, m, _ = query.shape
-        n, k = ref.shape[1], idx.shape[2]
-        for r in range(b):
-            for i in range(m):
-                qx, qy, qz = query[r, i, 0], query[r, i, 1], query[r, i, 2]
-                dist, near = sqdist[r, i], idx[r, i]
-                filled = 0
-                for j in range(n):
-                    dx, dy, dz = qx - ref[r, j, 0], qy - ref[r, j, 1], qz - ref[r, j, 2]
-                    d = dx * dx + dy * dy + dz * dz
-                    if filled < k:
-                        pos = filled
-                        filled += 1
-                    elif d < dist[k - 1]:
-                        pos = k - 1
-                    else:
-                        continue
-                    while pos > 0 and dist[pos - 1] > d:
-                        dist[pos], near[pos] = dist[pos - 1], near[pos - 1]
-                        pos -= 1
-                    dist[pos], near[pos] = d, j
-
-    return knn_rows
 
 
 def chamfer_distance(
@@ -620,6 +453,12 @@ def distinct_points(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Ten
     bit for bit equal; the env's resampling repeats points many times) -> ``(U, 3)`` and the
     layout ``(L,)`` int64: the row of each masked point's copy (``U`` for the others). One sort
     by the (x, y) bits; copies a point of other z separates count twice, which is exact too."""
+    kernel = kernels.distinct_kernel() if kernels.compilable(points) else None
+    if kernel is not None and points.dtype == torch.float32:
+        first, layout = torch.empty(2, len(mask), dtype=torch.long)
+        bits = points.detach().contiguous().view(torch.int32).numpy()
+        u = kernel(bits, mask.contiguous().numpy(), first.numpy(), layout.numpy())
+        return points.index_select(0, first[:u]), layout
     bits = points.contiguous().view(torch.int32)
     key = (bits[:, 0].long() << 32) | (bits[:, 1].long() & _MASK32)
     key = torch.where(mask, key, torch.iinfo(torch.int64).max)  # finite points sort first
@@ -641,8 +480,22 @@ def nearest_distances(
     """Nearest-point distances between ``K`` sets of points ``a (K, U, 3)`` (``a_in (K, U)``
     bool: which points each set holds; ``None``: all) and the set ``b (V, 3)``: ``(K, U)`` from
     each of ``a``'s points to ``b`` and ``(K, V)`` from ``b``'s points to each set (``inf``
-    for an empty set). One pairwise pass; exact to float rounding, the same on any device."""
+    for an empty set). One pairwise pass; exact to float rounding, the same on any device (and
+    compiled, :func:`trackers.kernels.nearest_kernel`, with the same bits)."""
     k, u, c = a.shape
+    kernel = kernels.nearest_kernel() if kernels.compilable(a, b) else None
+    grad = torch.is_grad_enabled() and (a.requires_grad or b.requires_grad)
+    if kernel is not None and not grad and u and len(b):
+        a_near, b_near = a.new_empty(k, u), a.new_empty(k, len(b))
+        inside = torch.ones(k, u, dtype=torch.bool) if a_in is None else a_in.contiguous()
+        kernel(
+            a.contiguous().numpy(),
+            inside.numpy(),
+            b.contiguous().numpy(),
+            a_near.numpy(),
+            b_near.numpy(),
+        )
+        return a_near.sqrt_(), b_near.sqrt_()
     sq = pairwise_sqdist(a.reshape(1, k * u, c), b[None]).reshape(k, u, -1)  # (K, U, V)
     if a_in is not None:  # a penalty of 0 / inf: exact (x + 0 = x)
         sq.add_(torch.where(a_in, 0.0, math.inf).to(sq.dtype)[..., None])

@@ -1,0 +1,274 @@
+"""Compiled CPU kernels for :mod:`trackers.ops` (numba, the ``fast`` extra).
+
+Each getter (:func:`hash_kernel`, :func:`fps_kernel`, :func:`ball_kernel`, :func:`knn_kernel`,
+:func:`distinct_kernel`, :func:`nearest_kernel`) compiles its kernel on first use (cached on
+disk by numba) and returns it, or ``None`` without numba: the ops then run their torch paths.
+Every kernel computes what its torch path computes, the float operations in the same order
+(squared distances as ``pairwise_sqdist``: ``(dx^2 + dy^2) + dz^2`` in the points' dtype), so
+the results are the same bit for bit (tested against the torch paths in ``tests/test_ops.py``).
+They run only on CPU float32 / float64 coordinates (:func:`compilable`).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+__all__ = [
+    "ball_kernel",
+    "compilable",
+    "distinct_kernel",
+    "fps_kernel",
+    "hash_kernel",
+    "knn_kernel",
+    "nearest_kernel",
+]
+
+_MASK32 = 0xFFFFFFFF
+
+
+def compilable(*points: torch.Tensor) -> bool:
+    """Whether the compiled kernels take these point sets: coordinates ``(B, N, 3)`` on the CPU,
+    all float32 or all float64 (the dtypes numba computes in as torch does)."""
+    dtypes = {p.dtype for p in points}
+    return (
+        all(p.device.type == "cpu" and p.shape[-1] == 3 for p in points)
+        and len(dtypes) == 1
+        and dtypes <= {torch.float32, torch.float64}
+    )
+
+
+def _compiled(build: Callable[[Callable], Callable]) -> Callable[[], Callable | None]:
+    """A kernel getter: ``build(njit)`` with numba's ``njit(cache=True, nogil=True)`` on the
+    first call (compiled on first use, cached on disk by numba), ``None`` without numba (the
+    ``fast`` extra): the callers then run their torch paths."""
+
+    @functools.cache
+    def kernel() -> Callable | None:
+        try:
+            import numba
+        except ImportError:
+            return None
+        return build(numba.njit(cache=True, nogil=True))
+
+    kernel.__doc__ = build.__doc__
+    return kernel
+
+
+@_compiled
+def hash_kernel(njit: Callable) -> Callable:
+    """The compiled :func:`trackers.ops.hash_orders` of one cloud ``(xyz (B, N, 3), quantum,
+    start, start2, out (B, N) int64)``: the same two hash chains, occurrence ranks and stable
+    sorts on unsigned 64-bit integers (32-bit values), so the same orders bit for bit, without
+    the ~60 elementwise tensor ops (1.4 ms of a batch-1 ``act``)."""
+    m32, one = np.uint64(_MASK32), np.uint64(1)
+
+    @njit
+    def mix32(h):  # pragma: no cover - compiled
+        h ^= h >> np.uint64(16)
+        h = (h * np.uint64(0x85EBCA6B)) & m32
+        h ^= h >> np.uint64(13)
+        h = (h * np.uint64(0xC2B2AE35)) & m32
+        return h ^ (h >> np.uint64(16))
+
+    @njit
+    def hash_rows(xyz, quantum, start, start2, out):  # pragma: no cover - compiled
+        b, n, _ = xyz.shape
+        key = np.empty(n, np.int64)
+        final = np.empty(n, np.int64)
+        for r in range(b):
+            for j in range(n):
+                h, h2 = np.uint64(start), np.uint64(start2)
+                for c in range(3):
+                    q = np.int64(np.rint(np.float64(xyz[r, j, c]) / quantum))
+                    q = np.uint64(q & np.int64(_MASK32))
+                    h = mix32(h ^ q)
+                    h2 = mix32(h2 ^ ((q * np.uint64(0x27D4EB2F)) & m32))
+                key[j] = np.int64(((h >> one) << np.uint64(32)) | h2)
+            order = np.argsort(key, kind="mergesort")  # stable, as torch.sort(stable=True)
+            rank = 0
+            for i in range(n):
+                k = key[order[i]]
+                rank = rank + 1 if i > 0 and k == key[order[i - 1]] else 0
+                low, high = np.uint64(k) & m32, np.uint64(k) >> np.uint64(32)
+                mixed = (np.uint64(rank + 1) * np.uint64(0x9E3779B1)) & m32
+                spread = mix32(mix32(low ^ mixed) ^ high)
+                final[i] = np.int64(((spread >> one) << np.uint64(31)) | high)
+            second = np.argsort(final, kind="mergesort")
+            for i in range(n):
+                out[r, i] = order[second[i]]
+
+    return hash_rows
+
+
+@_compiled
+def fps_kernel(njit: Callable) -> Callable:
+    """The compiled FPS loop ``(xyz (B, N, 3) float ndarray, n, start, out (B, n) int64)``, or
+    ``None`` without numba (imported and compiled on first use; cached on disk by numba)."""
+
+    @njit
+    def fps_rows(xyz, n, start, out):  # pragma: no cover - compiled
+        b, npts, _ = xyz.shape
+        mind = np.empty(npts, dtype=xyz.dtype)
+        for r in range(b):
+            mind[:] = np.inf
+            cur = start
+            for i in range(n):
+                out[r, i] = cur
+                cx, cy, cz = xyz[r, cur, 0], xyz[r, cur, 1], xyz[r, cur, 2]
+                best, arg = -np.inf, 0
+                for j in range(npts):
+                    dx, dy, dz = xyz[r, j, 0] - cx, xyz[r, j, 1] - cy, xyz[r, j, 2] - cz
+                    m = min(mind[j], dx * dx + dy * dy + dz * dz)
+                    mind[j] = m
+                    if m > best:  # strictly: the lowest index wins a tie, as argmax
+                        best, arg = m, j
+                cur = arg
+
+    return fps_rows
+
+
+@_compiled
+def ball_kernel(njit: Callable) -> Callable:
+    """The compiled ball query ``(xyz (B, N, 3), centres (B, M, 3), r2, k) -> (group (P,),
+    point (P,))`` of :func:`trackers.ops.ball_query_pairs` (flat indices). Per centre it scans
+    the points in index order and stops at the ``k``-th hit, so the pairs are the same as the
+    torch paths'."""
+
+    @njit
+    def ball_pairs(xyz, centres, r2, k):  # pragma: no cover - compiled
+        b, n, _ = xyz.shape
+        m = centres.shape[1]
+        group = np.empty(b * m * k, dtype=np.int64)
+        point = np.empty(b * m * k, dtype=np.int64)
+        p = 0
+        for r in range(b):
+            for i in range(m):
+                cx, cy, cz = centres[r, i, 0], centres[r, i, 1], centres[r, i, 2]
+                found = 0
+                for j in range(n):
+                    dx, dy, dz = cx - xyz[r, j, 0], cy - xyz[r, j, 1], cz - xyz[r, j, 2]
+                    if dx * dx + dy * dy + dz * dz < r2:
+                        group[p], point[p] = r * m + i, r * n + j
+                        p += 1
+                        found += 1
+                        if found == k:
+                            break
+                if found == 0:  # no hit: the pair (centre, point 0)
+                    group[p], point[p] = r * m + i, r * n
+                    p += 1
+        return group[:p], point[:p]
+
+    return ball_pairs
+
+
+@_compiled
+def knn_kernel(njit: Callable) -> Callable:
+    """The compiled :func:`trackers.ops.knn` for coordinates ``(query (B, M, 3), ref (B, N,
+    3), sqdist (B, M, k) out, idx (B, M, k) out)``: per query an insertion into the
+    ``k`` best so far, a later point replacing only a strictly farther one (ties: lower index
+    first, as the stable sort), with ``pairwise_sqdist``'s ``(dx^2 + dy^2) + dz^2``."""
+
+    @njit
+    def knn_rows(query, ref, sqdist, idx):  # pragma: no cover - compiled
+        b, m, _ = query.shape
+        n, k = ref.shape[1], idx.shape[2]
+        for r in range(b):
+            for i in range(m):
+                qx, qy, qz = query[r, i, 0], query[r, i, 1], query[r, i, 2]
+                dist, near = sqdist[r, i], idx[r, i]
+                filled = 0
+                for j in range(n):
+                    dx, dy, dz = qx - ref[r, j, 0], qy - ref[r, j, 1], qz - ref[r, j, 2]
+                    d = dx * dx + dy * dy + dz * dz
+                    if filled < k:
+                        pos = filled
+                        filled += 1
+                    elif d < dist[k - 1]:
+                        pos = k - 1
+                    else:
+                        continue
+                    while pos > 0 and dist[pos - 1] > d:
+                        dist[pos], near[pos] = dist[pos - 1], near[pos - 1]
+                        pos -= 1
+                    dist[pos], near[pos] = d, j
+
+    return knn_rows
+
+
+@_compiled
+def distinct_kernel(njit: Callable) -> Callable:
+    """The compiled :func:`trackers.ops.distinct_points` of one cloud ``(bits (L, 3) int32: the
+    float32 points' bits, mask (L,) bool, first (L,) int64 out, layout (L,) int64 out) -> U``:
+    the masked points sorted by their (x, y) bits, a new distinct point wherever a point's
+    three bits differ from the one before; ``first[:U]`` holds each distinct point's row,
+    ``layout`` each masked point's distinct point (``U`` for the others). The grouping may put
+    copies' rows in another order than the torch path (its sort is not stable), which no
+    consumer reads: nearest distances and layout means do not depend on it."""
+    unmasked = np.iinfo(np.int64).max
+
+    @njit
+    def distinct_rows(bits, mask, first, layout):  # pragma: no cover - compiled
+        n = bits.shape[0]
+        key = np.empty(n, np.int64)
+        for i in range(n):
+            x, y = np.int64(bits[i, 0]), np.int64(bits[i, 1]) & np.int64(_MASK32)
+            key[i] = (x << 32) | y if mask[i] else unmasked
+        order = np.argsort(key, kind="mergesort")
+        u, prev = 0, -1
+        for j in range(n):
+            i = order[j]
+            if not mask[i]:
+                layout[i] = -1
+                continue
+            same = prev >= 0 and (
+                bits[i, 0] == bits[prev, 0]
+                and bits[i, 1] == bits[prev, 1]
+                and bits[i, 2] == bits[prev, 2]
+            )
+            if not same:
+                first[u] = i
+                u += 1
+            layout[i] = u - 1
+            prev = i
+        for i in range(n):
+            if layout[i] < 0:
+                layout[i] = u
+        return u
+
+    return distinct_rows
+
+
+@_compiled
+def nearest_kernel(njit: Callable) -> Callable:
+    """The compiled :func:`trackers.ops.nearest_distances` before its square roots: ``(a (K, U,
+    3), a_in (K, U) bool, b (V, 3), a_near (K, U) out, b_near (K, V) out)``, every pair's
+    squared distance as ``pairwise_sqdist`` computes it and the minima over the other set (a
+    point outside its set: ``inf``, as the torch path's ``+ inf`` penalty). The caller takes
+    the square roots with torch: its ``sqrt`` is not IEEE-rounded in every case (MKL), so
+    numpy's would differ in the last bit."""
+
+    @njit
+    def nearest_rows(a, a_in, b, a_near, b_near):  # pragma: no cover - compiled
+        k, u, _ = a.shape
+        v = b.shape[0]
+        inf = a.dtype.type(np.inf)
+        b_near[:] = inf
+        for s in range(k):
+            for i in range(u):
+                best = inf
+                if a_in[s, i]:
+                    ax, ay, az = a[s, i, 0], a[s, i, 1], a[s, i, 2]
+                    for j in range(v):
+                        dx, dy, dz = ax - b[j, 0], ay - b[j, 1], az - b[j, 2]
+                        d = dx * dx + dy * dy + dz * dz
+                        if d < best:
+                            best = d
+                        if d < b_near[s, j]:
+                            b_near[s, j] = d
+                a_near[s, i] = best
+
+    return nearest_rows
