@@ -134,7 +134,8 @@ def hash_orders(
 ) -> list[torch.Tensor]:
     """:func:`hash_order` of each cloud ``(B, N_i, 3)`` with its seed -> ``[(B, N_i)]``, the
     same orders bit for bit, hashed side by side (one pass of the elementwise hash, which is
-    most of the cost at batch 1)."""
+    most of the cost at batch 1; on CPU with the ``fast`` extra one compiled loop per cloud,
+    :func:`trackers.kernels.hash_kernel`)."""
     starts = [(seed * 0x9E3779B1 + 0x7F4A7C15) & _MASK32 for seed in seeds]
     starts2 = [(seed * 0x85EBCA77 + 0x165667B1) & _MASK32 for seed in seeds]
     kernel = kernels.hash_kernel() if kernels.compilable(*clouds) else None
@@ -232,9 +233,8 @@ def farthest_point_sample(xyz: torch.Tensor, n: int, start: int = 0) -> torch.Te
     nature: on CPU with numba installed (``pip install 'pointtrack[fast]'``) they run compiled
     (:func:`trackers.kernels.fps_kernel`, ~10-20x faster than a Python loop of torch ops at
     batch 1); otherwise (or on another device) as a loop vectorised over the batch and the
-    points. Both compute
-    the squared distances with the same float32 operations in the same order
-    (``(dx^2 + dy^2) + dz^2``), so they pick the same indices.
+    points. Both compute the squared distances with the same float32 operations in the same
+    order (``(dx^2 + dy^2) + dz^2``), so they pick the same indices.
     """
     b, npts, _ = xyz.shape
     if n > npts:
@@ -299,8 +299,8 @@ def ball_query_pairs(
     hit (:func:`trackers.kernels.ball_kernel`). Otherwise small problems test every pair
     (:func:`_ball_dense`), larger ones only the points of the 3 x 3 grid cells around each
     centre (:func:`_ball_grid`), unless those are a large share of all pairs (clustered
-    clouds). The hit test is the same
-    distance formula on every path, so the pairs are the same.
+    clouds). The hit test is the same distance formula on every path, so the pairs are the
+    same.
     """
     with torch.no_grad():  # indices only: no graph through the distances
         b, n = xyz.shape[:2]
@@ -452,7 +452,9 @@ def distinct_points(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Ten
     """The distinct masked points of one cloud ``points (L, 3)`` / ``mask (L,)`` (float32 copies
     bit for bit equal; the env's resampling repeats points many times) -> ``(U, 3)`` and the
     layout ``(L,)`` int64: the row of each masked point's copy (``U`` for the others). One sort
-    by the (x, y) bits; copies a point of other z separates count twice, which is exact too."""
+    by the (x, y) bits; copies a point of other z separates count twice, which is exact too.
+    On CPU with the ``fast`` extra one compiled loop (:func:`trackers.kernels.distinct_kernel`):
+    the same points and layout up to the order of the distinct rows, which no caller reads."""
     kernel = kernels.distinct_kernel() if kernels.compilable(points) else None
     if kernel is not None and points.dtype == torch.float32:
         first, layout = torch.empty(2, len(mask), dtype=torch.long)
