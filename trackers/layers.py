@@ -161,10 +161,10 @@ def dense_max(
 ) -> torch.Tensor:
     """``pool(mlp.forward_from(0, pre), dim)`` for neighbourhoods laid out densely (``pre``: the
     first layer's pre-activation, e.g. ``(B, M, k, C1)``, a temporary that the ReLU may
-    overwrite); the MLP must end in a ReLU. ``pool`` is the training path's max (:func:`max_pool`, or ``torch.amax`` for its even split of the
-    gradient among ties). In eval (fast path) the last Linear's bias and the ReLU act after the
-    max, on one row per group instead of ``k`` (monotone: the same maxima up to the rounding of
-    the bias add)."""
+    overwrite); the MLP must end in a ReLU. ``pool`` is the training path's max
+    (:func:`max_pool`, or ``torch.amax`` for its even split of the gradient among ties). In eval
+    (fast path) the last Linear's bias and the ReLU act after the max, on one row per group
+    instead of ``k`` (monotone: the same maxima up to the rounding of the bias add)."""
     last = len(mlp.linears) - 1
     if mlp.training or not mlp.fast_eval or last == 0:
         return pool(mlp.forward_from(0, pre, fresh=True), dim)

@@ -56,7 +56,10 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
         return super()._get_help_string(action)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``pointtrack`` parser; with ``only`` (a command's name) only that command's module is
+    imported and given its flags (the others are listed with their help line): a command's
+    start-up then skips the other commands' imports (stable-baselines3, Ray, ...)."""
     parser = argparse.ArgumentParser(
         prog="pointtrack", description=__doc__, formatter_class=HelpFormatter
     )
@@ -66,6 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     parser.command_parsers = {}  # name -> its parser (training.argconfig re-parses with a file)
     for name, (module, help_text) in COMMANDS.items():
+        if only is not None and name != only:
+            sub.add_parser(name, help=help_text)
+            continue
         mod = _command_module(module)
         cmd = sub.add_parser(
             name,
@@ -77,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
         mod.add_arguments(cmd)
         parser.command_parsers[name] = cmd
     return parser
+
+
+def _requested_command(argv: list[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), if it is one."""
+    words = [a for a in argv if not a.startswith("-")]
+    return words[0] if words and words[0] in COMMANDS else None
 
 
 def plain_text(doc: str) -> str:
@@ -121,8 +133,8 @@ def configure_logging(level: int = logging.INFO) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
     argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(_requested_command(argv))
     args = parser.parse_args(argv)
     configure_logging()
     prefix = f"pointtrack {args.command}: "

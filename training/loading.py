@@ -10,7 +10,7 @@ import torch
 import trackers
 from trackers.registry import find_checkpoint
 from training.checkpoint import is_training_checkpoint, tracker_from_checkpoint
-from training.rl.wrappers import ResidualTracker
+from training.residual_file import is_residual_file
 
 __all__ = ["UntrainedTrackerError", "load_tracker"]
 
@@ -33,7 +33,9 @@ def load_tracker(name_or_path: str, *, untrained: bool = False, seed: int = 0) -
 
     Raises ``ValueError`` / ``FileNotFoundError`` naming ``name_or_path``.
     """
-    if ResidualTracker.is_residual_file(name_or_path):  # a `pointtrack finetune --algo residual`
+    if is_residual_file(name_or_path):  # a `pointtrack finetune --algo residual`
+        from training.rl.wrappers import ResidualTracker  # the RL stack only when asked for
+
         return ResidualTracker.load(name_or_path)
     if is_training_checkpoint(name_or_path):
         return tracker_from_checkpoint(name_or_path)

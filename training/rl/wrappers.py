@@ -19,12 +19,12 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from safetensors import safe_open
 from safetensors.torch import save_file
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecMonitor
 
 from trackers.registry import read_safetensors, tracker_from_metadata, tracker_metadata
+from training.residual_file import RESIDUAL_FORMAT, is_residual_file
 from training.rl.policy import TrackerPolicy
 from training.rundir import atomic_path
 
@@ -40,7 +40,6 @@ __all__ = [
     "wrap_env",
 ]
 
-RESIDUAL_FORMAT = "pointtrack-residual"
 RESIDUAL_VERSION = "1"
 
 
@@ -230,16 +229,7 @@ class ResidualTracker:
     @staticmethod
     def is_residual_file(path: str | Path) -> bool:
         """True for a ``residual.safetensors`` (or a run directory holding one)."""
-        path = Path(path)
-        if path.is_dir():
-            path = path / "residual.safetensors"
-        if not path.is_file() or path.suffix != ".safetensors":
-            return False
-        try:
-            with safe_open(str(path), framework="pt", device="cpu") as f:
-                return (f.metadata() or {}).get("format") == RESIDUAL_FORMAT
-        except Exception:  # noqa: BLE001 - not a safetensors file: not ours
-            return False
+        return is_residual_file(path)
 
     @classmethod
     def load(cls, path: str | Path) -> ResidualTracker:
