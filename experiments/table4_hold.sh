@@ -14,9 +14,10 @@ cell() {  # ROOT SETTING ARM NAME
   local root=$1 setting=$2 arm=$3 name=$4 out="$1/select-hold-$3" seed
   local candidates=()
   for seed in 0 1 2; do candidates+=("$root/p2b-$arm-s$seed/best.pt"); done
-  mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
-    "$root/p2b-$arm-s0" "$root/p2b-$arm-s1" "$root/p2b-$arm-s2" --holds 0.15 0.3 0.6 \
-    --out "$root/hold")
+  mkdir -p "$root/hold"
+  python experiments/hold_variants.py "$root/p2b-$arm-s0" "$root/p2b-$arm-s1" \
+    "$root/p2b-$arm-s2" --holds 0.15 0.3 0.6 --out "$root/hold" > "$root/hold/$arm.txt"
+  mapfile -t -O ${#candidates[@]} candidates < "$root/hold/$arm.txt"
   if [ ! -e "$out/selection.json" ]; then
     pointtrack select "${candidates[@]}" --setting "$setting" "${world[@]}" --train-world 0 \
       --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/select-hold-$arm.log" 2>&1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import shutil
 import types
 from pathlib import Path
 from types import SimpleNamespace
@@ -288,6 +289,55 @@ def test_table4_ship_copies_the_selected_file_only_past_both_baselines(tmp_path,
     recipe = yaml.safe_load((recipes / "p2b-nuscenes1-u.yaml").read_text())
     assert recipe["checkpoint"] == "p2b-nuscenes1-u" and recipe["commands"] == ["make it"]
     assert "written_by" not in recipe["provenance"]
+
+
+def test_table4_ship_reads_a_file_candidates_own_test_reading(tmp_path, capsys):
+    """A selection in another folder (``--select``) whose first candidate is a tracker file (a
+    hold variant): the gate reads ``test/STEM``, not a run's reading."""
+    script = _script("table4_ship")
+    root = _ship_root(tmp_path, unseen=11.0)  # the run itself would not pass
+    variant = root / "hold" / "p2b-none-s1-h0.3.safetensors"
+    _eval_report(root / "test" / variant.stem, "variant", 20.0, 13.0)
+    folder = root / "select-hold-none"
+    folder.mkdir()
+    ranking = [{"candidate": str(variant)}, {"candidate": str(root / "p2b-none-s1" / "best.pt")}]
+    (folder / "selection.json").write_text(json.dumps({"ranking": ranking}))
+    shutil.copyfile(
+        root / "select-none" / "p2b-nuscenes1-u.safetensors", folder / "p2b-nuscenes1-u.safetensors"
+    )
+    argv = [str(root), "none", "p2b-nuscenes1-u", "--select", "select-hold-none", "--dry-run"]
+    assert script.main(argv) == 0
+    out = capsys.readouterr().out
+    assert "p2b-none-s1-h0.3 unseen 13.0 beats previous_box 12.0" in out
+    assert "p2b-nuscenes1-u: would ship p2b-none-s1-h0.3" in out
+
+
+def test_hold_variants_change_only_the_still_target_test(tmp_path):
+    """Each variant of a run's validated weights: the given hold, every weight and every other
+    inference setting as the run's; a rerun keeps the files it finds."""
+    script = _script("hold_variants")
+    torch.manual_seed(0)
+    tracker = trackers.make("p2b", **trackers.size_config("p2b", "slim"))
+    run = tmp_path / "p2b-none-s0"
+    run.mkdir()
+    trackers.save(tracker, run / "model.safetensors")
+    script.load_tracker = lambda path: trackers.load(run / "model.safetensors")
+    paths = script.write_variants(run, [0.15, 0.6], tmp_path / "hold")
+    assert [p.name for p in paths] == [
+        "p2b-none-s0-h0.15.safetensors",
+        "p2b-none-s0-h0.6.safetensors",
+    ]
+    for path, hold in zip(paths, (0.15, 0.6), strict=True):
+        variant = trackers.load(path)
+        assert variant.inference.hold_chamfer_m == hold
+        assert variant.inference.rerank_top_k == tracker.inference.rerank_top_k
+        state, reference = variant.state_dict(), tracker.state_dict()
+        assert all(torch.equal(state[k], reference[k]) for k in reference)
+    stamp = paths[0].stat().st_mtime_ns
+    script.write_variants(run, [0.15], tmp_path / "hold")
+    assert paths[0].stat().st_mtime_ns == stamp
+    with pytest.raises(SystemExit):
+        script.main([str(run), "--holds", "0", "--out", str(tmp_path / "x")])
 
 
 def test_table4_names_a_folder_without_one_report(tmp_path):
