@@ -5,7 +5,7 @@
     OMP_NUM_THREADS=1 python benchmarks/bench_numba.py [--names p2b-kitti1-u,...] [--repeats 3]
 
 Observations: those of ``tests/data/decisions.npz`` on which each file moves (as
-``bench_decision.py``); thread CPU time per ``act``, best of ``--repeats`` passes, the two modes
+``bench_decision.py``); process CPU time per ``act``, best of ``--repeats`` passes, the two modes
 alternating twice so that drift hits both.
 """
 
@@ -13,14 +13,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-import trackers
-from trackers import kernels
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from baseline import best_seconds  # noqa: E402 - same folder
+
+import trackers  # noqa: E402
+from trackers import kernels  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1] / "tests" / "data" / "decisions.npz"
 GETTERS = (
@@ -35,16 +38,14 @@ KEYS = ("template", "search", "size", "motion")
 
 
 def act_ms(model: torch.nn.Module, observations: list[dict], repeats: int) -> float:
-    """Best-of-``repeats`` thread CPU milliseconds per ``act`` over ``observations``."""
-    for obs in observations[:3]:  # warm-up: compilation, BatchNorm folds
-        model.act(obs)
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.thread_time()
+    """Best-of-``repeats`` CPU milliseconds per ``act`` over ``observations`` (one warm-up
+    pass: compilation, BatchNorm folds)."""
+
+    def one_pass() -> None:
         for obs in observations:
             model.act(obs)
-        best = min(best, (time.thread_time() - start) / len(observations))
-    return best * 1e3
+
+    return best_seconds(one_pass, repeats, clock="cpu") / len(observations) * 1e3
 
 
 def main(argv: list[str] | None = None) -> int:

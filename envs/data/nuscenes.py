@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import gc
 import json
-import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from functools import cache, cached_property
@@ -44,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from envs.data.kitti import NonFinitePointsWarning
+from envs.data.kitti import finite_rows
 from envs.data.nuscenes_poses import (
     global_to_lidar_boxes,
     lidar_to_reference,
@@ -182,16 +181,7 @@ def read_pcd_bin(path: str | Path) -> np.ndarray:
     raw = np.fromfile(path, dtype="<f4").reshape(-1, POINT_FIELDS)
     points = raw[:, :4].astype(np.float32)
     points[:, 3] *= np.float32(1.0 / 255.0)
-    if not np.isfinite(points).all():  # a flat test is ~25x cheaper than the per-row mask
-        finite = np.isfinite(points).all(axis=1)
-        dropped = int(len(points) - np.count_nonzero(finite))
-        points = points[finite]
-        warnings.warn(
-            f"nuScenes scan file {path}: dropped {dropped} non-finite points",
-            NonFinitePointsWarning,
-            stacklevel=2,
-        )
-    return points
+    return finite_rows(points, f"nuScenes scan file {path}")[0]
 
 
 class NuScenesScans:

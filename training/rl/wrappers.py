@@ -24,7 +24,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecMonitor
 
 from trackers.registry import read_safetensors, tracker_from_metadata, tracker_metadata
-from training.residual_file import RESIDUAL_FORMAT, is_residual_file
+from training.residual_file import RESIDUAL_FORMAT
 from training.rl.policy import TrackerPolicy
 from training.rundir import atomic_path
 
@@ -225,11 +225,6 @@ class ResidualTracker:
         with atomic_path(path) as tmp:
             save_file(tensors, str(tmp), metadata=meta)
         return path
-
-    @staticmethod
-    def is_residual_file(path: str | Path) -> bool:
-        """True for a ``residual.safetensors`` (or a run directory holding one)."""
-        return is_residual_file(path)
 
     @classmethod
     def load(cls, path: str | Path) -> ResidualTracker:
