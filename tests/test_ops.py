@@ -488,3 +488,47 @@ def test_farthest_point_sample_equals_the_previous_implementation(compiled, monk
             ops.farthest_point_sample(xyz, k, start).numpy(), _fps_before(xyz, k, start).numpy()
         )
     assert ops.farthest_point_sample(xyz, 0).shape == (b, 0)
+
+
+_EVERY_KERNEL = """
+import json, torch
+from trackers import kernels, ops
+x = torch.rand(1, 256, 3)
+ops.hash_orders([x], [0])
+ops.farthest_point_sample(x, 8)
+ops.ball_query_pairs(0.3, 8, x, x[:, :16])
+ops.knn(4, x[:, :16], x)
+mask = torch.ones(256, dtype=torch.bool)
+ops.distinct_points(x[0], mask)
+ops.nearest_distances(x[:, :16], None, x[0])
+getters = ["hash_kernel", "fps_kernel", "ball_kernel", "knn_kernel", "distinct_kernel",
+           "nearest_kernel"]
+print(json.dumps({g: len(getattr(kernels, g)().stats.cache_misses) for g in getters}))
+"""
+
+
+def test_every_kernel_loads_from_numbas_disk_cache_in_a_new_process(tmp_path):
+    """A second process compiles nothing: a closure that pickles differently per process
+    (a dispatcher) made the hash kernel miss numba's cache every time, ~1-3 s in every
+    `pointtrack eval` worker and a new cache file per run."""
+    if kernels.hash_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "PYTHONPATH": str(root)}
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", _EVERY_KERNEL], env=env, capture_output=True, text=True
+        )
+        for _ in range(2)
+    ]
+    for run in runs:
+        assert run.returncode == 0, run.stderr
+    first, second = (json.loads(r.stdout.strip().splitlines()[-1]) for r in runs)
+    assert all(first.values()), first  # the first process compiled every kernel ...
+    assert not any(second.values()), second  # ... and the second loaded them all

@@ -67,15 +67,17 @@ def hash_kernel(njit: Callable) -> Callable:
     m32, one = np.uint64(_MASK32), np.uint64(1)
 
     @njit
-    def mix32(h):  # pragma: no cover - compiled
-        h ^= h >> np.uint64(16)
-        h = (h * np.uint64(0x85EBCA6B)) & m32
-        h ^= h >> np.uint64(13)
-        h = (h * np.uint64(0xC2B2AE35)) & m32
-        return h ^ (h >> np.uint64(16))
-
-    @njit
     def hash_rows(xyz, quantum, start, start2, out):  # pragma: no cover - compiled
+        # an inner function, not a second @njit one: a dispatcher in the closure pickles
+        # differently in every process, so numba's disk cache would miss every time
+
+        def mix32(h):
+            h ^= h >> np.uint64(16)
+            h = (h * np.uint64(0x85EBCA6B)) & m32
+            h ^= h >> np.uint64(13)
+            h = (h * np.uint64(0xC2B2AE35)) & m32
+            return h ^ (h >> np.uint64(16))
+
         b, n, _ = xyz.shape
         key = np.empty(n, np.int64)
         final = np.empty(n, np.int64)
