@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Subset
 
+from training.allocator import retain_freed_memory
 from training.averaging import WeightEMA
 from training.checkpoint import (
     CHECKPOINT_FORMAT,
@@ -157,6 +158,8 @@ class Trainer:
         self.device = _process_device(cfg.device, self.world)
         if cfg.num_threads:
             torch.set_num_threads(cfg.num_threads)
+        if self.device.type == "cpu":  # big activations: reuse freed blocks (training.allocator)
+            retain_freed_memory()
         if cfg.batch_size % self.world:
             raise TrainingError(
                 f"batch_size {cfg.batch_size} is not divisible by the {self.world} processes"

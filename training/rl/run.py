@@ -62,6 +62,7 @@ from envs.data import KittiTracking, get_setting
 from envs.synthetic import ensure_world
 from envs.tracking_env import make_tracking_env
 from trackers.registry import find_checkpoint
+from training.allocator import retain_freed_memory
 from training.checkpoint import parent_entry
 from training.evaluate import env_options_for, evaluate, observation_keys_for
 from training.loading import load_tracker
@@ -543,6 +544,8 @@ def finetune(
             None,
         )
     torch.set_num_threads(cfg.threads)
+    if not str(cfg.device).startswith("cuda"):  # the update's big activations (allocator doc)
+        retain_freed_memory()
     factory = make_env or train_env_factory(cfg, base.env_options, observation_keys_for([base]))
     out.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out)
