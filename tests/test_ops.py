@@ -491,16 +491,9 @@ def test_farthest_point_sample_equals_the_previous_implementation(compiled, monk
 
 
 _EVERY_KERNEL = """
-import json, torch
+import json
 from trackers import kernels, ops
-x = torch.rand(1, 256, 3)
-ops.hash_orders([x], [0])
-ops.farthest_point_sample(x, 8)
-ops.ball_query_pairs(0.3, 8, x, x[:, :16])
-ops.knn(4, x[:, :16], x)
-mask = torch.ones(256, dtype=torch.bool)
-ops.distinct_points(x[0], mask)
-ops.nearest_distances(x[:, :16], None, x[0])
+assert ops.load_kernels()
 getters = ["hash_kernel", "fps_kernel", "ball_kernel", "knn_kernel", "distinct_kernel",
            "nearest_kernel"]
 print(json.dumps({g: len(getattr(kernels, g)().stats.cache_misses) for g in getters}))
@@ -508,8 +501,9 @@ print(json.dumps({g: len(getattr(kernels, g)().stats.cache_misses) for g in gett
 
 
 def test_every_kernel_loads_from_numbas_disk_cache_in_a_new_process(tmp_path):
-    """A second process compiles nothing: a closure that pickles differently per process
-    (a dispatcher) made the hash kernel miss numba's cache every time, ~1-3 s in every
+    """``ops.load_kernels`` reaches all six kernels (the first process compiles each), and a
+    second process compiles nothing: a closure that pickles differently per process (a
+    dispatcher) made the hash kernel miss numba's cache every time, ~1-3 s in every
     `pointtrack eval` worker and a new cache file per run."""
     if kernels.hash_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")

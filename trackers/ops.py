@@ -37,6 +37,7 @@ __all__ = [
     "hash_orders",
     "knn",
     "layout_mean",
+    "load_kernels",
     "nearest_distances",
     "pairwise_sqdist",
     "random_order",
@@ -511,3 +512,20 @@ def layout_mean(near: torch.Tensor, layout: torch.Tensor, mask: torch.Tensor) ->
     not depend on how the points were deduplicated or batched."""
     full = near.gather(1, layout.clamp(max=near.shape[1] - 1).expand(near.shape[0], -1))
     return torch.where(mask, full, 0.0).sum(1) / mask.sum(1)
+
+
+def load_kernels() -> bool:
+    """Load every compiled kernel of these ops for float32 points now (numba's start and its disk
+    cache: ~0.5 s of CPU), e.g. in a parent before it forks workers, which inherit them instead
+    of each loading them again. ``False`` without numba (nothing to load)."""
+    if kernels.hash_kernel() is None:
+        return False
+    points = torch.zeros(1, 4, 3)
+    points[0, :, 0] = torch.arange(4.0)
+    hash_orders([points], [0])
+    farthest_point_sample(points, 2)
+    ball_query_pairs(1.5, 2, points, points[:, :2])
+    knn(2, points[:, :2], points)
+    distinct_points(points[0], torch.ones(4, dtype=torch.bool))
+    nearest_distances(points[:, :2], None, points[0])
+    return True

@@ -471,6 +471,7 @@ def _run_sharded(tracker, env, indices: list[int], opts: _RunOptions, tick) -> l
     lengths = env.unwrapped.tracklet_lengths
     ids = [t.tracklet_id for t in env.unwrapped.tracklets]
     order = sorted(indices, key=lambda i: (-lengths[i], i))
+    _load_kernels_before_fork(tracker)
 
     def one(index: int) -> _Episode:
         return _run_episode(tracker, env, index, opts.seed, opts.record_boxes)
@@ -478,6 +479,18 @@ def _run_sharded(tracker, env, indices: list[int], opts: _RunOptions, tick) -> l
     episodes = map_forked(one, order, opts.workers, tick, label=lambda i: f"tracklet {ids[i]}")
     by_index = dict(zip(order, episodes, strict=True))
     return [by_index[i] for i in indices]
+
+
+def _load_kernels_before_fork(tracker: Any) -> None:
+    """A learned tracker's compiled point ops loaded here, once per process: every evaluation
+    forks new workers (each eval seed, each ``select`` candidate and world), and each would
+    start numba and read its cache again (:func:`trackers.ops.load_kernels`)."""
+    import torch
+
+    if isinstance(tracker, torch.nn.Module):
+        from trackers.ops import load_kernels
+
+        load_kernels()
 
 
 def _run_vector(tracker, vec, tracklets, opts: _RunOptions):
