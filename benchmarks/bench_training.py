@@ -14,7 +14,8 @@ the env's toy dataset. ``slim`` is the reduced-width configuration the shipped c
 (the trackers' ``sizes["slim"]``); ``default`` the papers' widths. On CUDA the epochs are
 timed to the device's completion; the samples come from ``--workers`` DataLoader processes, as
 ``pointtrack train --num-workers``. ``--baseline REV`` compares with another commit
-(``benchmarks/baseline.py``).
+(``benchmarks/baseline.py``). The default ``--batch 8`` keeps a run short; ``pointtrack train``'s
+default is 48, where CPU training's large activations show (:mod:`training.allocator`).
 """
 
 from __future__ import annotations
