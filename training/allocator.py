@@ -7,8 +7,8 @@ augmentation alone holds ``(B, 64, 128, 64)`` float32 activations, 100 MiB at th
 48, and a fresh one costs ~10 ms more than a reused one. :func:`retain_freed_memory` has malloc
 take every block from its heap and keep up to ``trim_bytes`` of freed memory there. P2B slim
 training, one thread, on this project's 2-core VM: 1.40x samples/s at batch 48 for a peak RSS
-of 4.6 against 3.6 GiB (the heap fragments before it settles), 1.08x at batch 16 (2.0 against
-1.8 GiB), nothing at batch 8, whose blocks stay below the threshold
+of 4,574 against 3,618 MiB (the heap fragments before it settles), 1.08x at batch 16 (1,966
+against 1,806 MiB), nothing at batch 8, whose blocks stay below the threshold
 (``benchmarks/bench_training.py --batch 48``).
 """
 
