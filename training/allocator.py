@@ -15,7 +15,6 @@ against 1,806 MiB), nothing at batch 8, whose blocks stay below the threshold
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 import sys
 
@@ -35,9 +34,8 @@ def retain_freed_memory(trim_bytes: int = 1 << 30) -> bool:
     (GroupPPO fine-tuning of gpt-kitti1-u: ~1.07x steps/s)."""
     if not sys.platform.startswith("linux"):
         return False
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+    try:  # the process's own symbols (libc among them): no library search, no subprocess
+        mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):  # musl and other libcs: no mallopt
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
