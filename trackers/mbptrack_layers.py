@@ -42,6 +42,14 @@ def _first_layer_split(
     return F.linear(per_point_in, w_diff), F.linear(per_centre_in, w_centre - w_diff, b)
 
 
+def _edge_sum(grouped: torch.Tensor, per_centre: torch.Tensor) -> torch.Tensor:
+    """``grouped (B, M, k, H) + per_centre (B, M, 1, H)``, into ``grouped`` (a fresh gather)
+    where no gradient is recorded: the same sums without writing a second ``(B, M, k, H)``."""
+    if torch.is_grad_enabled() and (grouped.requires_grad or per_centre.requires_grad):
+        return grouped + per_centre
+    return grouped.add_(per_centre)
+
+
 class EdgeConv(nn.Module):
     """One DGCNN EdgeConv layer with range sampling: the first ``n`` points are the centres (the
     caller orders the cloud randomly or by hash, so a prefix is a random sample); each centre's
@@ -62,7 +70,7 @@ class EdgeConv(nn.Module):
         centres = xyz[:, :n]
         idx = knn_idx(self.k, centres, xyz)  # (B, n, k)
         per_point, per_centre = _first_layer_split(self.mlp, f, f[:, :n], f.shape[-1])
-        pre = ops.group(per_point, idx) + per_centre[:, :, None]
+        pre = _edge_sum(ops.group(per_point, idx), per_centre[:, :, None])
         return centres, dense_max(self.mlp, pre, 2, torch.amax)
 
 
@@ -258,7 +266,7 @@ class BPLocNet(nn.Module):
         w, bias = self.edge.linear_params(0)
         per_seed = F.linear(xyz, w[:, :3]) + F.linear(feat_s, w[:, 6:])
         per_sample = F.linear(samples, w[:, 3:6] - w[:, :3], bias)
-        pre = ops.group(per_seed, idx) + per_sample[:, :, None]
+        pre = _edge_sum(ops.group(per_seed, idx), per_sample[:, :, None])
         sample_feat = dense_max(self.edge, pre, 2, torch.amax)  # (B, K S, D)
         proposal_feat = self.aggr(sample_feat.reshape(b, k_prop, -1))
         out = self.fc_proposal(proposal_feat + self.center_emb(score))
