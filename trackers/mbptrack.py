@@ -226,7 +226,8 @@ class MBPTrack(Tracker):
             return self._seeds(clouds, ops.random_order(*clouds.shape[:2], gen, clouds.device))
         if not self.fast_eval:
             return self._seeds(clouds, ops.hash_order(clouds, int(self.config.sampling_seed)))
-        parts = [self._cached_seeds(cloud[None]) for cloud in clouds]
+        stamp = [(t._version, t.data_ptr()) for t in self._backbone_tensors]  # once per batch
+        parts = [self._cached_seeds(cloud[None], stamp) for cloud in clouds]
         return tuple(torch.cat(p) for p in zip(*parts, strict=True))
 
     def _seeds(
@@ -249,16 +250,16 @@ class MBPTrack(Tracker):
             if t is not None
         ]
 
-    def _cached_seeds(self, cloud: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def _cached_seeds(self, cloud: torch.Tensor, stamp: list) -> tuple[torch.Tensor, ...]:
         """The eval seeds of one frame ``(1, N, 3)``, from a cache keyed by the frame's bytes and
-        the backbone weights' versions: a frame's search region returns as memory in the next
-        steps (:mod:`envs.memory`), so each frame goes through the backbone once. A pure
-        speed-up: a hit returns the very tensors a miss computes (frames always run alone)."""
+        ``stamp``, the backbone weights' versions and addresses: a frame's search region returns
+        as memory in the next steps (:mod:`envs.memory`), so each frame goes through the backbone
+        once. A pure speed-up: a hit returns the very tensors a miss computes (frames always run
+        alone)."""
         seed = int(self.config.sampling_seed)
         if torch.is_grad_enabled():  # cached tensors carry no graph
             return self._seeds(cloud, ops.hash_order(cloud, seed))
         key = hashlib.blake2b(cloud.cpu().numpy().tobytes(), digest_size=16).digest()
-        stamp = [(t._version, t.data_ptr()) for t in self._backbone_tensors]
         hit = self._seed_cache.get(key)
         if hit is not None and hit[0] == stamp:
             self._seed_cache.move_to_end(key)
