@@ -313,7 +313,8 @@ def test_ball_query_compiled_scan_equals_every_pair(seed):
 @pytest.mark.parametrize("seed", range(3))
 def test_knn_compiled_equals_the_stable_sort(seed, monkeypatch):
     """The compiled k nearest neighbours against the stable sort of every distance, with ties
-    (coordinates on a coarse grid, every point twice): the same distances and indices."""
+    (coordinates on a coarse grid, every point twice, so the x-sorted scan meets runs of equal
+    x), float32 and float64: the same distances and indices."""
     if kernels.knn_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
     g = torch.Generator().manual_seed(seed)
@@ -323,9 +324,12 @@ def test_knn_compiled_equals_the_stable_sort(seed, monkeypatch):
     ref[:, n // 2 :] = ref[:, : n - n // 2].clone()
     ref.requires_grad_(True)
     compiled = ops.knn(k, query, ref)
+    compiled64 = ops.knn(k, query.double(), ref.detach().double())
     monkeypatch.setattr(kernels, "knn_kernel", lambda: None)
     reference = ops.knn(k, query, ref)
     assert torch.equal(compiled[1], reference[1]) and torch.equal(compiled[0], reference[0])
+    reference64 = ops.knn(k, query.double(), ref.detach().double())
+    assert torch.equal(compiled64[1], reference64[1]) and torch.equal(compiled64[0], reference64[0])
     compiled[0].sum().backward()  # the distances stay differentiable
     assert ref.grad is not None and torch.isfinite(ref.grad).all()
 
