@@ -64,8 +64,9 @@ def gate(root: Path, run: str) -> tuple[bool, list[str]]:
 
 
 def write_recipe(source: Path, name: str, commands: list[str], folder: Path) -> Path:
-    """``folder/NAME.yaml``: the recipe of the shipped file ``source`` (its provenance as the
-    selection wrote it, the digest of its bytes without provenance, the commands)."""
+    """``folder/NAME.yaml``: the recipe of the file ``source`` that ships as ``NAME`` (its
+    provenance as the selection wrote it, the digest of its bytes without provenance, the
+    commands)."""
     provenance = trackers.load(source).provenance.to_dict()
     for key in ("written_by", "config_file"):  # the back-fill sets these
         provenance.pop(key, None)
@@ -113,10 +114,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.dry_run:
         print(f"{args.name}: would ship {run} ({source})")
         return 0
+    # the recipe from the selection's copy: a file in the shipped directory loads only once
+    # the manifest lists it, which the back-fill writes
+    recipe = write_recipe(source, args.name, args.command, args.recipes)
     target = args.checkpoints / source.name
     shutil.copyfile(source, target.with_suffix(".tmp"))
     target.with_suffix(".tmp").replace(target)
-    recipe = write_recipe(target, args.name, args.command, args.recipes)
     print(f"{args.name}: shipped {run} as {target}, recipe {recipe}")
     return 0
 

@@ -270,18 +270,27 @@ def _ship_root(tmp_path: Path, unseen: float) -> Path:
     return root
 
 
-def test_table4_ship_copies_the_selected_file_only_past_both_baselines(tmp_path, capsys):
+def test_table4_ship_copies_the_selected_file_only_past_both_baselines(
+    tmp_path, capsys, monkeypatch
+):
+    """The shipped directory stands in for the real one (a file there loads only once its
+    manifest lists it, which the back-fill writes after the ship)."""
+    import trackers.registry
+
     script = _script("table4_ship")
     shipped, recipes = tmp_path / "checkpoints", tmp_path / "recipes"
     shipped.mkdir()
     recipes.mkdir()
+    trackers.registry.write_manifest(shipped)
+    monkeypatch.setattr(trackers.registry, "CHECKPOINT_DIR", shipped.resolve())
     dirs = ["--checkpoints", str(shipped), "--recipes", str(recipes), "--command", "make it"]
     root = _ship_root(tmp_path, unseen=11.0)  # unseen 11 < 12: not shipped
     assert script.main([str(root), "none", "p2b-nuscenes1-u", *dirs]) == 0
     out = capsys.readouterr().out
     assert "p2b-none-s1 unseen 11.0 does not beat previous_box 12.0" in out
     assert "p2b-nuscenes1-u: not shipped" in out
-    assert not list(shipped.iterdir()) and not list(recipes.iterdir())
+    assert [p.name for p in shipped.iterdir()] == ["manifest.json"]
+    assert not list(recipes.iterdir())
     root = _ship_root(tmp_path / "again", unseen=13.0)
     assert script.main([str(root), "none", "p2b-nuscenes1-u", *dirs]) == 0
     source = root / "select-none" / "p2b-nuscenes1-u.safetensors"
