@@ -3,9 +3,10 @@ checkpoints on fixed observations (toy batches, padded clouds, env observations,
 
 The six -U / -W entries were recorded from main at commit cfcfd29 (before the tracker refactor
 of issue 21); the entries of the checkpoints shipped since (``LATER``: the RL and DRCT
-fine-tunes, session 16; the kitti-2 P2B checkpoints, session 20) were added from the code of
-their time, and ``bat-kitti1-u`` was re-recorded when its file was replaced (sessions 23 and 26), so
-that ``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs
+fine-tunes, session 16; the kitti-2 P2B checkpoints, session 20; ``p2b-kitti2-s``, a Table IV
+pilot file, 2026-12-07) were added from the code of their time, and ``bat-kitti1-u`` was
+re-recorded when its file was replaced (sessions 23 and 26), so that
+``tests/test_trackers_reference.py`` can check every shipped matching tracker's outputs
 stay what they were. Until session 26 the check was bit for bit and ``Z`` was kept as a
 SHA-256; on another CPU (an Intel Xeon with AVX512, the entries having been recorded on
 another kind) the same float32 forward rounds differently, by up to 7e-7 in the actions, so
@@ -30,7 +31,14 @@ from trackers.decision import InferenceConfig
 from trackers.toy import toy_batch
 
 CHECKPOINTS = [f"{n}-kitti1-{w}" for n in ("p2b", "bat", "gpt") for w in "uw"]
-LATER = ["p2b-kitti1-u-rl", "gpt-kitti1-u-rl", "p2b-kitti1-drct", "p2b-kitti2-u", "p2b-kitti2-w"]
+LATER = [
+    "p2b-kitti1-u-rl",
+    "gpt-kitti1-u-rl",
+    "p2b-kitti1-drct",
+    "p2b-kitti2-u",
+    "p2b-kitti2-w",
+    "p2b-kitti2-s",
+]
 KEYS = ("template", "search", "size", "motion")
 
 
