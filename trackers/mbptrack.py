@@ -226,7 +226,11 @@ class MBPTrack(Tracker):
             return self._seeds(clouds, ops.random_order(*clouds.shape[:2], gen, clouds.device))
         if not self.fast_eval:
             return self._seeds(clouds, ops.hash_order(clouds, int(self.config.sampling_seed)))
-        stamp = [(t._version, t.data_ptr()) for t in self._backbone_tensors]  # once per batch
+        stamp = (  # once per batch; under autograd nothing is cached
+            None
+            if torch.is_grad_enabled()
+            else [(t._version, t.data_ptr()) for t in self._backbone_tensors]
+        )
         parts = [self._cached_seeds(cloud[None], stamp) for cloud in clouds]
         return tuple(torch.cat(p) for p in zip(*parts, strict=True))
 
@@ -241,7 +245,7 @@ class MBPTrack(Tracker):
     @property
     def _backbone_tensors(self) -> list[torch.Tensor]:
         """The backbone's parameters and buffers, read fresh (``.to`` replaces buffers) from each
-        module's own dicts: a third of ``state_dict``'s cost, paid on every eval frame."""
+        module's own dicts: a third of ``state_dict``'s cost, paid on every eval batch."""
         return [
             t
             for module in self.backbone.modules()
@@ -250,14 +254,14 @@ class MBPTrack(Tracker):
             if t is not None
         ]
 
-    def _cached_seeds(self, cloud: torch.Tensor, stamp: list) -> tuple[torch.Tensor, ...]:
+    def _cached_seeds(self, cloud: torch.Tensor, stamp: list | None) -> tuple[torch.Tensor, ...]:
         """The eval seeds of one frame ``(1, N, 3)``, from a cache keyed by the frame's bytes and
         ``stamp``, the backbone weights' versions and addresses: a frame's search region returns
         as memory in the next steps (:mod:`envs.memory`), so each frame goes through the backbone
         once. A pure speed-up: a hit returns the very tensors a miss computes (frames always run
-        alone)."""
+        alone). ``stamp=None`` (under autograd: cached tensors carry no graph) computes."""
         seed = int(self.config.sampling_seed)
-        if torch.is_grad_enabled():  # cached tensors carry no graph
+        if stamp is None:
             return self._seeds(cloud, ops.hash_order(cloud, seed))
         key = hashlib.blake2b(cloud.cpu().numpy().tobytes(), digest_size=16).digest()
         hit = self._seed_cache.get(key)
