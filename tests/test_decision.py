@@ -15,9 +15,17 @@ import torch
 from test_trackers import tiny
 
 import trackers
-from trackers import ops
+from trackers import decision, kernels, ops
 from trackers.base import prepare_observation
-from trackers.decision import InferenceConfig, choose_action, decide, keeps_box
+from trackers.decision import (
+    InferenceConfig,
+    choose_action,
+    chosen_proposal,
+    clip_action,
+    decide,
+    keeps_box,
+    scenes,
+)
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -72,6 +80,26 @@ def test_decide_and_act_take_the_recorded_decisions(name, recorded):
     single = np.stack([model.act({k: v[i] for k, v in obs.items()}) for i in range(len(want))])
     np.testing.assert_allclose(single, want, rtol=0, atol=1e-4)
     np.testing.assert_array_equal(model.act(obs), single)
+
+
+@pytest.mark.parametrize("name", RECORDED)
+def test_chosen_proposal_names_the_proposal_decide_executes(name, recorded):
+    """``chosen_proposal`` (the RL update differentiates that proposal alone) on the recorded
+    network outputs: ``-1`` exactly where the re-ranking keeps the reference box, and elsewhere
+    ``decide``'s action is that proposal clipped, bit for bit (the best-scored one or another:
+    every kind of decision is among the recorded ones)."""
+    model = trackers.load(name)
+    obs = {k: recorded[f"obs_{k}"] for k in KEYS}
+    batch, _ = prepare_observation(obs)
+    outputs = {k: torch.from_numpy(recorded[f"{name}/{k}"]) for k in ("proposals", "scores")}
+    moving = ~keeps_box(model, batch, model.inference).numpy()
+    index = chosen_proposal(model, batch, outputs, model.inference, model.max_action)
+    kind = recorded[f"{name}/kind"][moving]  # 0 no move, 1 the best proposal, 2 another one
+    np.testing.assert_array_equal(index.numpy()[moving] == -1, kind == 0)
+    rows = torch.arange(len(index))
+    executed = clip_action(outputs["proposals"][rows, index.clamp(min=0)], model.max_action)
+    action = decide(model, batch, outputs, model.inference).numpy()[moving]
+    np.testing.assert_array_equal(action[kind > 0], executed.numpy()[moving][kind > 0])
 
 
 def test_old_checkpoints_migrate_and_act_identically(tmp_path, recorded):
@@ -285,6 +313,47 @@ def test_re_ranking_agrees_with_an_independent_choice_on_network_outputs():
     np.testing.assert_array_equal(
         tracker.act(batch), np.clip(tracker.best_action(out).numpy(), -a_max, a_max)
     )
+
+
+def test_compiled_crops_equal_the_torch_ops(recorded, monkeypatch):
+    """The re-ranking's compiled crop-and-nearest pass (``trackers.kernels.crop_nearest_kernel``)
+    against the torch ops it replaces, on the recorded observations and 24 candidate boxes each
+    (moved up to 1.5 m, turned up to 0.5 rad): the same crops and Chamfer distances, bit for
+    bit."""
+    if kernels.crop_nearest_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    obs = {k: recorded[f"obs_{k}"] for k in KEYS}
+    batch, _ = prepare_observation(obs)
+    g = torch.Generator().manual_seed(0)
+    offsets = (torch.rand(len(obs["search"]), 24, 4, generator=g) * 2 - 1) * torch.tensor(
+        [1.5, 1.5, 0.3, 0.5]
+    )
+    boxes = torch.cat([offsets[..., :3], torch.zeros_like(offsets[..., :3]), offsets[..., 3:]], -1)
+    boxes[:, 0] = 0  # the reference box among them
+
+    def run():
+        observed = scenes(trackers.load("p2b-kitti1-u"), batch)
+        crops = [  # where _crop_distances asks for them: a first crop and a search
+            decision._crops_and_nearest(sc.size, sc.points[0], sc.first[0], b)
+            if sc.crop_masks[0].any() and sc.real.any()
+            else None
+            for sc, b in zip(observed, boxes, strict=True)
+        ]
+        distances = [decision._crop_distances(sc, b) for sc, b in zip(observed, boxes, strict=True)]
+        return crops, torch.stack(distances)
+
+    compiled, compiled_d = run()
+    monkeypatch.setattr(kernels, "crop_nearest_kernel", lambda: None)
+    reference, reference_d = run()
+    assert torch.equal(compiled_d, reference_d)
+    assert torch.isfinite(reference_d).float().mean() > 0.3  # crops with points, and without
+    assert not torch.isfinite(reference_d).all()
+    for c, r in zip(compiled, reference, strict=True):
+        assert (c is None) == (r is None)
+        if r is not None:
+            assert torch.equal(c[0], r[0])  # the crops
+            assert torch.equal(c[2], r[2])  # the first crop's nearest distances
+            assert torch.equal(c[1][r[0]], r[1][r[0]])  # the crops' (only there defined)
 
 
 def test_inference_config_checks_its_fields():

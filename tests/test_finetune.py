@@ -23,6 +23,7 @@ import torch
 import trackers
 from envs.tracking_env import TrackingEnv, make_toy_dataset
 from training.cli import main
+from training.parallel import usable_cores
 from training.rl import config as ftc
 from training.rl import run as ft
 from training.rl import state as fts
@@ -68,8 +69,12 @@ def log_steps(out: Path) -> list[int]:
 
 def test_ppo_run_writes_an_ordinary_tracker_checkpoint(tmp_path, data):
     out = tmp_path / "run"
+    threads = torch.get_num_threads()
     result = run(tiny_cfg(snapshot_every=2), out, data)
     assert result.timesteps == 32 and result.updates == 4
+    # every usable core by default, recorded as the count that ran; the caller's count restored
+    assert json.loads((out / "config.json").read_text())["threads"] == usable_cores()
+    assert torch.get_num_threads() == threads
     tuned, base = trackers.load(out / "tracker.safetensors"), trackers.load("p2b-kitti1-u")
     changed = [k for k, v in tuned.state_dict().items() if not torch.equal(v, base.state_dict()[k])]
     assert changed and all(k.startswith("head.") for k in changed)  # train_parts="head"

@@ -499,13 +499,13 @@ import json
 from trackers import kernels, ops
 assert ops.load_kernels()
 getters = ["hash_kernel", "fps_kernel", "ball_kernel", "knn_kernel", "distinct_kernel",
-           "nearest_kernel"]
+           "nearest_kernel", "crop_nearest_kernel"]
 print(json.dumps({g: len(getattr(kernels, g)().stats.cache_misses) for g in getters}))
 """
 
 
 def test_every_kernel_loads_from_numbas_disk_cache_in_a_new_process(tmp_path):
-    """``ops.load_kernels`` reaches all six kernels (the first process compiles each), and a
+    """``ops.load_kernels`` reaches all seven kernels (the first process compiles each), and a
     second process compiles nothing: a closure that pickles differently per process (a
     dispatcher) made the hash kernel miss numba's cache every time, ~1-3 s in every
     `pointtrack eval` worker and a new cache file per run."""

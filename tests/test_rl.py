@@ -539,3 +539,42 @@ def test_mbptrack_policy_starts_as_the_tracker_and_its_cached_update_equals_unca
     assert any(moved)
     for p, q in zip(runs[True], runs[False], strict=True):
         torch.testing.assert_close(p, q, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("name", ["p2b-kitti1-u", "bat-kitti1-u", "gpt-kitti1-u"])
+def test_executed_proposal_gradient_equals_the_whole_heads(data, name):
+    """With ``train_parts="head"`` the update differentiates only the executed proposal's
+    cluster (``executed_gradient_only``): the same means and the same gradient in every head
+    weight as differentiating the whole head (to float rounding), on the tracker's own closed
+    loop (held boxes, best-scored and re-ranked proposals; the hold off for a second pass so
+    that every state moves)."""
+    for inference in ({}, {"hold_chamfer_m": 0.0}):
+        base = trackers.load(name, inference=inference)
+        obs = stack(observations(base, data, n=8))
+        grads, means = {}, {}
+        for executed in (True, False):
+            model = ppo(data, base, policy_kwargs={"executed_gradient_only": executed})
+            policy = model.policy
+            assert policy._executed_gradient == executed
+            mean, _ = policy.mean_and_value({k: torch.as_tensor(v) for k, v in obs.items()})
+            weights = torch.linspace(-1.0, 1.0, mean.numel()).reshape(mean.shape)
+            (mean * weights).sum().backward()
+            means[executed] = mean.detach()
+            grads[executed] = [p.grad for p in policy.trainable_tracker_parameters]
+        torch.testing.assert_close(means[True], means[False], atol=1e-6, rtol=0)
+        assert any(g is not None and g.abs().sum() > 0 for g in grads[False])
+        for fast, full in zip(grads[True], grads[False], strict=True):
+            if full is None:  # a weight no executed proposal depends on (the seed scores)
+                assert fast is None or not fast.any()
+            else:
+                torch.testing.assert_close(fast, full, atol=1e-5, rtol=1e-4)
+
+
+def test_executed_gradient_is_off_where_it_would_change_the_gradient(data):
+    """The soft mean weighs every proposal, ``fusion+head`` needs the forward's graph up to the
+    fused features, and a frozen actor needs no gradient: the plain path there."""
+    for kwargs in ({"action_mode": "soft"}, {"train_parts": "fusion+head"}):
+        assert not ppo(data, "p2b-kitti1-u", policy_kwargs=kwargs).policy._executed_gradient
+    policy = ppo(data, "p2b-kitti1-u").policy
+    policy.freeze_actor()
+    assert not policy._executed_gradient

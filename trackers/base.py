@@ -491,6 +491,12 @@ class MatchingTracker(Tracker):
         )
         return out
 
+    def proposal_at(self, outputs: dict[str, torch.Tensor], index: torch.Tensor) -> torch.Tensor:
+        """``outputs["proposals"]`` at ``index (B,)`` -> ``(B, 4)``, the head run again on its
+        inputs for that proposal alone (:meth:`trackers.head.VotingHead.proposal_at`): a
+        gradient through the head's weights for the executed proposal only."""
+        return self.head.proposal_at(outputs["seed_xyz"], outputs["Z"], outputs["votes"], index)
+
     def loss(
         self, outputs: dict[str, torch.Tensor], targets: Mapping[str, torch.Tensor]
     ) -> dict[str, torch.Tensor]:

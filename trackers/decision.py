@@ -42,7 +42,7 @@ import torch
 
 from envs.geometry import world_to_box_torch
 from envs.observation import TEMPLATE_SCALE
-from trackers import ops
+from trackers import kernels, ops
 
 if TYPE_CHECKING:
     from trackers.base import Tracker
@@ -284,14 +284,54 @@ def choose_action(
     left, or a proposal is not finite, the best action stands. Differentiable in the chosen
     proposal (not in the choice). ``observed``: the batch's :func:`scenes`, if built already."""
     best = tracker.best_action(outputs)
+    reranked = _rerank(tracker, batch, outputs, inference, max_action, observed)
+    if reranked is None:
+        return best
+    candidates, _, choice, decides = reranked
+    chosen = candidates[torch.arange(len(choice), device=choice.device), choice]
+    return torch.where(decides[:, None], chosen, best)
+
+
+def chosen_proposal(
+    tracker: Tracker,
+    batch: Mapping[str, torch.Tensor],
+    outputs: dict[str, torch.Tensor],
+    inference: InferenceConfig,
+    max_action: Any,
+    observed: list[Scene] | None = None,
+) -> torch.Tensor:
+    """Which proposal :func:`choose_action` takes, for a tracker whose best action is its
+    best-scored proposal (``Tracker.best_action``): ``(B,)`` indices into
+    ``outputs["proposals"]``, ``-1`` where the re-ranking keeps the reference box."""
+    best = outputs["scores"].argmax(dim=1)
+    reranked = _rerank(tracker, batch, outputs, inference, max_action, observed)
+    if reranked is None:
+        return best
+    _, top, choice, decides = reranked
+    proposal = top.gather(1, (choice - 1).clamp(min=0)[:, None])[:, 0]
+    chosen = torch.where(choice == 0, torch.full_like(proposal, -1), proposal)
+    return torch.where(decides, chosen, best)
+
+
+def _rerank(
+    tracker: Tracker,
+    batch: Mapping[str, torch.Tensor],
+    outputs: dict[str, torch.Tensor],
+    inference: InferenceConfig,
+    max_action: Any,
+    observed: list[Scene] | None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """The re-ranking of :func:`choose_action` (None when ``rerank_top_k`` is 0): the
+    candidates ``(B, 1 + K, 4)`` (the reference box first), the proposals' indices ``top (B,
+    K)``, the chosen candidate ``(B,)`` and where the choice stands ``decides (B,)`` bool."""
     k = min(inference.rerank_top_k, outputs["scores"].shape[1])
     if k == 0:
-        return best
-    b = best.shape[0]
+        return None
     top = outputs["scores"].topk(k, dim=1).indices  # (B, K)
+    b = top.shape[0]
     proposals = outputs["proposals"][torch.arange(b, device=top.device)[:, None], top]
     candidates = torch.cat(  # (B, 1 + K, 4): the reference box first
-        [torch.zeros_like(best)[:, None], clip_action(proposals, max_action)], dim=1
+        [torch.zeros_like(proposals[:, :1]), clip_action(proposals, max_action)], dim=1
     )
     observed = scenes(tracker, batch) if observed is None else observed
     zeros = torch.zeros_like(candidates[..., :3])
@@ -304,8 +344,7 @@ def choose_action(
         & torch.isfinite(distance).any(1)
         & torch.isfinite(proposals).all(-1).all(-1)
     )
-    chosen = candidates[torch.arange(b, device=top.device), distance.argmin(1)]
-    return torch.where(decides[:, None], chosen, best)
+    return candidates, top, distance.argmin(1), decides
 
 
 def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
@@ -318,22 +357,50 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
     if not (bool(first_mask.any()) and bool(scene.real.any())):
         return inf
     (points, layout), (first, first_layout) = scene.points, scene.first
-    in_frames = world_to_box_torch(points[None], boxes)  # (C, U, 3)
-    in_crop = _crop_mask(in_frames, scene.size[None].expand(len(boxes), 3))  # (C, U)
-    # only the points some crop holds meet the first crop's (the rest of the search is far)
-    cropped = in_crop.any(0).nonzero()[:, 0]
-    if not len(cropped):
+    crops = _crops_and_nearest(scene.size, points, first, boxes)
+    if crops is None:  # no candidate's crop holds a point
         return inf
-    near, first_near = ops.nearest_distances(
-        in_frames.index_select(1, cropped), in_crop.index_select(1, cropped), first
-    )
-    crop_near = near.new_zeros(in_crop.shape).index_copy_(1, cropped, near)
+    in_crop, crop_near, first_near = crops
     in_box = in_crop.gather(1, layout.clamp(max=len(points) - 1).expand(len(boxes), -1))
     in_box &= scene.real
     crop_to_first = ops.layout_mean(crop_near, layout, in_box)
     first_to_crop = ops.layout_mean(first_near, first_layout, first_mask.expand(len(boxes), -1))
     distance = 0.5 * (crop_to_first + first_to_crop)
     return torch.where(in_box.sum(1) >= HOLD_MIN_POINTS, distance, inf)
+
+
+def _crops_and_nearest(
+    size: torch.Tensor, points: torch.Tensor, first: torch.Tensor, boxes: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+    """Which of ``points (U, 3)`` each candidate box ``(C, 7)`` crops, ``(C, U)`` bool, their
+    distances to the nearest point of ``first (F, 3)``, ``(C, U)`` (any value outside the crop),
+    and ``first``'s to the nearest point of each crop, ``(C, F)``; None when no crop holds a
+    point. On CPU with the ``fast`` extra one compiled pass
+    (:func:`trackers.kernels.crop_nearest_kernel`, the same bits)."""
+    kernel = kernels.crop_nearest_kernel() if kernels.compilable(points, first) else None
+    if kernel is not None and boxes.dtype == points.dtype and not boxes.requires_grad:
+        c = len(boxes)
+        in_crop = torch.empty(c, len(points), dtype=torch.bool)
+        sq_near, sq_first = points.new_empty(c, len(points)), points.new_empty(c, len(first))
+        half = size * (TEMPLATE_SCALE / 2)  # as _crop_mask and _above_ground compute them
+        floor = (-size[2:] / 2 + HOLD_GROUND_CLEARANCE_M).contiguous()  # (1,)
+        yaw = boxes[:, 6]
+        inputs = (points, torch.cos(yaw), torch.sin(yaw), boxes[:, :3], half, floor, first)
+        outputs = (in_crop, sq_near, sq_first)
+        kernel(*(t.contiguous().numpy() for t in inputs), *(t.numpy() for t in outputs))
+        if not in_crop.any():
+            return None
+        return in_crop, sq_near.sqrt_(), sq_first.sqrt_()
+    in_frames = world_to_box_torch(points[None], boxes)  # (C, U, 3)
+    in_crop = _crop_mask(in_frames, size[None].expand(len(boxes), 3))  # (C, U)
+    # only the points some crop holds meet the first crop's (the rest of the search is far)
+    cropped = in_crop.any(0).nonzero()[:, 0]
+    if not len(cropped):
+        return None
+    near, first_near = ops.nearest_distances(
+        in_frames.index_select(1, cropped), in_crop.index_select(1, cropped), first
+    )
+    return in_crop, near.new_zeros(in_crop.shape).index_copy_(1, cropped, near), first_near
 
 
 def decide(

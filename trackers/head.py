@@ -86,18 +86,79 @@ class VotingHead(nn.Module):
         self.fast_eval = True  # eval: cluster max over the real members only
 
     def forward(self, xyz: torch.Tensor, z: torch.Tensor) -> dict[str, torch.Tensor]:
-        m = xyz.shape[1]
-        n_prop = min(self.config.num_proposals, m)
+        n_prop = min(self.config.num_proposals, xyz.shape[1])
+        seed_logits, vote_xyz, vote_feat, per_vote = self._votes(xyz, z)
+        centres = vote_xyz[:, :n_prop]  # (B, P, 3)
+        raw = self._clusters(vote_xyz, per_vote, centres)  # (B, P, 5)
+        box_raw = torch.cat([centres + raw[..., :3], raw[..., 3:4]], dim=-1)  # yaw in yaw_unit
+        return {
+            "seed_logits": seed_logits,
+            "votes": vote_xyz,
+            "vote_features": vote_feat,
+            "proposal_centers": centres,
+            "box_raw": box_raw,
+            "proposals": self._radians(box_raw),
+            "scores": raw[..., 4],
+        }
+
+    def proposal_at(
+        self, xyz: torch.Tensor, z: torch.Tensor, votes: torch.Tensor, index: torch.Tensor
+    ) -> torch.Tensor:
+        """``forward(xyz, z)["proposals"]`` at ``index (B,)`` -> ``(B, 4)``, evaluating only what
+        that proposal depends on: its centre's vote and its cluster members' votes, the members
+        found among ``votes (B, M, 3)`` (``forward``'s, no gradient needed). The same values to
+        float rounding and the same gradient in the weights and ``z`` (the other proposals add
+        nothing to it): RL's update differentiates the one proposal the decision step executes
+        per state, at a few per cent of the head's work. Eval mode only (in training, BatchNorm's
+        statistics over one cluster would not be those over all)."""
+        if self.training:
+            raise RuntimeError("VotingHead.proposal_at: eval mode only (BatchNorm statistics)")
+        b, m = xyz.shape[:2]
+        rows = torch.arange(b, device=index.device)
+        group, point = ops.ball_query_pairs(  # (P,): centre b, member seed b * M + j
+            self.config.cluster_radius,
+            self.config.cluster_votes,
+            votes,
+            votes[rows, index][:, None],
+        )
+        seeds = torch.cat([point, rows * m + index])  # the members, then the centres
+        _, vote_xyz, _, per_vote = self._votes(
+            xyz.reshape(b * m, 3)[seeds][None], z.reshape(b * m, -1)[seeds][None]
+        )
+        centres = vote_xyz[0, len(point) :, None]  # (B, 1, 3)
+        w, _ = self.aggregate.linear_params(0)
+        cluster = grouped_max(
+            self.aggregate,
+            per_vote[:, : len(point)],
+            centres @ w[:, :3].t(),
+            group,
+            torch.arange(len(point), device=point.device),
+        )
+        raw = self.proposal(cluster)  # (B, 1, 5)
+        return self._radians(torch.cat([centres + raw[..., :3], raw[..., 3:4]], dim=-1))[:, 0]
+
+    def _votes(
+        self, xyz: torch.Tensor, z: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Seed logits ``(B, M)``, votes ``(B, M, 3)`` and ``(B, M, D)``, and each vote's part of
+        the first aggregation layer ``(B, M, V)``: ``W [xyz; sigmoid(score); feature] + b`` (the
+        layer decomposed into a per-vote and a per-centre term ``W_x c``)."""
         seed_logits = self.cls(z).squeeze(-1)  # (B, M)
         seed_feat = torch.cat([xyz, z], dim=-1)
         vote = seed_feat + self.vote(seed_feat)  # (B, M, 3 + D)
         vote_xyz, vote_feat = vote[..., :3], vote[..., 3:]
-        centres = vote_xyz[:, :n_prop]  # (B, P, 3)
-        # first aggregation layer decomposed: per vote W [xyz; s; f] + b, per centre W_x c
         w, b = self.aggregate.linear_params(0)
         per_vote = F.linear(
             torch.cat([vote_xyz, torch.sigmoid(seed_logits)[..., None], vote_feat], dim=-1), w, b
         )
+        return seed_logits, vote_xyz, vote_feat, per_vote
+
+    def _clusters(
+        self, vote_xyz: torch.Tensor, per_vote: torch.Tensor, centres: torch.Tensor
+    ) -> torch.Tensor:
+        """The raw outputs ``(B, P, 5)`` (centre offset, yaw, objectness logit) of the clusters
+        of votes around ``centres (B, P, 3)``."""
+        w, _ = self.aggregate.linear_params(0)
         per_centre = centres @ w[:, :3].t()
         radius, k = self.config.cluster_radius, self.config.cluster_votes
         if self.training or not self.fast_eval:  # dense: BatchNorm statistics over every slot
@@ -107,18 +168,11 @@ class VotingHead(nn.Module):
         else:  # the real cluster members only: the same max, less work
             group, point = ops.ball_query_pairs(radius, k, vote_xyz, centres)
             cluster = grouped_max(self.aggregate, per_vote, per_centre, group, point)
-        raw = self.proposal(cluster)  # (B, P, 5)
-        box_raw = torch.cat([centres + raw[..., :3], raw[..., 3:4]], dim=-1)  # yaw in yaw_unit
-        proposals = torch.cat([box_raw[..., :3], box_raw[..., 3:4] * self.yaw_scale], dim=-1)
-        return {
-            "seed_logits": seed_logits,
-            "votes": vote_xyz,
-            "vote_features": vote_feat,
-            "proposal_centers": centres,
-            "box_raw": box_raw,
-            "proposals": proposals,
-            "scores": raw[..., 4],
-        }
+        return self.proposal(cluster)
+
+    def _radians(self, box_raw: torch.Tensor) -> torch.Tensor:
+        """``(..., 4)`` boxes with the yaw in ``yaw_unit`` -> in radians."""
+        return torch.cat([box_raw[..., :3], box_raw[..., 3:4] * self.yaw_scale], dim=-1)
 
 
 def smooth_l1(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:

@@ -528,4 +528,8 @@ def load_kernels() -> bool:
     knn(2, points[:, :2], points)
     distinct_points(points[0], torch.ones(4, dtype=torch.bool))
     nearest_distances(points[:, :2], None, points[0])
+    one = torch.ones(1)  # and the decision step's crops (trackers.decision)
+    crop_args = (points[0], one, one, torch.zeros(1, 3), torch.ones(3), one, points[0, :1])
+    crop_outputs = (torch.empty(1, 4, dtype=torch.bool), torch.empty(1, 4), torch.empty(1, 1))
+    kernels.crop_nearest_kernel()(*(t.numpy() for t in (*crop_args, *crop_outputs)))
     return True

@@ -25,7 +25,14 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["WorkerDiedError", "map_forked", "one_torch_thread", "resolve_workers", "usable_cores"]
+__all__ = [
+    "WorkerDiedError",
+    "map_forked",
+    "one_torch_thread",
+    "resolve_workers",
+    "torch_threads",
+    "usable_cores",
+]
 
 
 class WorkerDiedError(ChildProcessError):
@@ -34,20 +41,25 @@ class WorkerDiedError(ChildProcessError):
 
 
 @contextlib.contextmanager
-def one_torch_thread() -> Iterator[None]:
+def torch_threads(count: int) -> Iterator[None]:
+    """Torch on ``count`` intra-op threads for the block (restored after)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def one_torch_thread() -> contextlib.AbstractContextManager[None]:
     """Torch on one intra-op thread for the block (restored after). Evaluations run so in
     every process: a closed tracking loop amplifies the last-bit differences that another
     thread count gives a forward (tracklet 0019/21 of the small test split: P2B Success 63.6
     with two threads, 58.7 with one), so results depend on neither the machine's cores nor
     the number of workers."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
+    return torch_threads(1)
 
 
 def usable_cores() -> int:

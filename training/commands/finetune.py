@@ -126,7 +126,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     config_flag("ent-coef", "entropy bonus")
     config_flag("seed", "seed of PPO and the episode draws")
     config_flag("device", "cpu or cuda[:N]")
-    config_flag("threads", "torch.set_num_threads")
+    config_flag("threads", "torch threads (None: every usable core)", type=int)
     config_flag("save-every", "updates between resume checkpoints (OUT/state.safetensors)")
     config_flag("snapshot-every", "updates between tracker snapshots in OUT/snapshots (0: none)")
     config_flag(

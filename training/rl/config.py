@@ -108,7 +108,7 @@ class FinetuneConfig:
     ent_coef: float = 0.0
     seed: int = 0
     device: str = "cpu"
-    threads: int = 1
+    threads: int | None = None  # torch threads (None: every usable core)
     save_every: int = 1  # updates between resume checkpoints
     snapshot_every: int = 0  # updates between tracker snapshots (0: none)
     val_max_tracklets: int = 8
@@ -145,6 +145,8 @@ class FinetuneConfig:
                 )
             )
         for name in ("timesteps", "num_envs", "n_epochs", "threads", "save_every"):
+            if name == "threads" and self.threads is None:
+                continue
             if getattr(self, name) < 1:
                 errors.append((name, f"{name} must be >= 1, got {getattr(self, name)}"))
         for name in ("n_steps", "batch_size"):

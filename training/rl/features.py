@@ -72,27 +72,39 @@ class FrozenStages:
         for stage in stages:
             for name in _ENTRY_POINTS:
                 if hasattr(type(stage), name):
-                    # a bound method on the instance: a deepcopy of the tracker rebinds it
-                    setattr(stage, name, types.MethodType(self._wrapped(name), stage))
+                    self.wrap(stage, name)
+
+    def wrap(self, owner: Any, name: str) -> None:
+        """Make ``owner.name`` a frozen call (:meth:`call`): a stage's entry point, or a method
+        whose outputs only frozen stages read (a matching tracker's backbone sampling orders)."""
+        # a bound method on the instance: a deepcopy of the tracker rebinds it
+        setattr(owner, name, types.MethodType(self._wrapped(name), owner))
 
     def _wrapped(self, name: str) -> Callable[..., Any]:
         frozen = self
 
-        def entry(module: nn.Module, *args: Any, **kwargs: Any) -> Any:
-            if frozen._depth == 0 and frozen._replay is not None:
-                return frozen._replay.pop(0)
-            frozen._depth += 1
-            try:
-                with torch.no_grad():
-                    out = getattr(type(module), name)(module, *args, **kwargs)
-            finally:
-                frozen._depth -= 1
-            if frozen._depth == 0 and frozen._forwards is not None:
-                frozen._forwards[-1].append(_tree_map(torch.Tensor.detach, out))
-            return out
+        def entry(owner: Any, *args: Any, **kwargs: Any) -> Any:
+            return frozen.call(getattr(type(owner), name), owner, *args, **kwargs)
 
         entry.__name__ = f"frozen_{name}"
         return entry
+
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)`` as a frozen stage: under ``no_grad``, its outputs kept while
+        recording and returned from the cache while replaying. The stages' entry points go
+        through here, and so can any other computation that depends on the observation alone
+        (the policy's still-target test)."""
+        if self._depth == 0 and self._replay is not None:
+            return self._replay.pop(0)
+        self._depth += 1
+        try:
+            with torch.no_grad():
+                out = fn(*args, **kwargs)
+        finally:
+            self._depth -= 1
+        if self._depth == 0 and self._forwards is not None:
+            self._forwards[-1].append(_tree_map(torch.Tensor.detach, out))
+        return out
 
     def start_forward(self, batch_size: int) -> None:
         """Called by the policy before each tracker forward of ``batch_size`` states."""

@@ -66,6 +66,7 @@ Why each choice (the traps of wrapping a tracker by hand, issue 22):
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import math
@@ -80,8 +81,15 @@ from stable_baselines3.common.torch_layers import BaseFeaturesExtractor
 from torch import nn
 
 import trackers
-from trackers.base import OBS_SHAPES, Tracker
-from trackers.decision import decide
+from trackers.base import OBS_SHAPES, MatchingTracker, Tracker
+from trackers.decision import (
+    Scene,
+    chosen_proposal,
+    clip_action,
+    decide,
+    keeps_box,
+    scenes,
+)
 from training.rl.features import FrozenStages, StageFeatures
 
 __all__ = [
@@ -178,7 +186,10 @@ class TrackerPolicy(ActorCriticPolicy):
     ``log_std_init`` (-2.0), ``action_mode`` (``"best"``), ``temperature`` (1.0, for
     ``"soft"``), ``critic`` (``"fused"``), ``critic_width`` (64), ``tracker_lr_scale`` (0.03),
     ``max_action`` (default: the tracker's ``max_action``, which must equal the env's: the policy
-    works in ``a / max_action`` units). The tracker is copied: the caller's object is unchanged.
+    works in ``a / max_action`` units), ``executed_gradient_only`` (True: with ``train_parts
+    "head"`` on a matching tracker, the update differentiates the executed proposal's cluster
+    alone, :meth:`_executed_action`; False: the whole head, the same gradient at ~3x the cost).
+    The tracker is copied: the caller's object is unchanged.
     """
 
     def __init__(
@@ -199,6 +210,7 @@ class TrackerPolicy(ActorCriticPolicy):
         optimizer_class: type[torch.optim.Optimizer] = ScaledAdam,
         optimizer_kwargs: dict[str, Any] | None = None,
         use_sde: bool = False,
+        executed_gradient_only: bool = True,
     ) -> None:
         if use_sde:
             raise ValueError("TrackerPolicy does not support gSDE (use_sde=True)")
@@ -234,6 +246,7 @@ class TrackerPolicy(ActorCriticPolicy):
         self.temperature = float(temperature)
         self.critic_kind = critic
         self.tracker_lr_scale = float(tracker_lr_scale)
+        self.executed_gradient_only = bool(executed_gradient_only)
         a_max = model.max_action if max_action is None else max_action
         a_max = np.asarray(a_max, dtype=np.float32)
         if a_max.shape != (4,) or not np.all(a_max > 0):
@@ -253,7 +266,11 @@ class TrackerPolicy(ActorCriticPolicy):
             p.requires_grad_(False)
         for p in self._trainable:
             p.requires_grad_(True)
-        self.frozen_stages = FrozenStages(self._frozen_prefix())
+        prefix = self._frozen_prefix()
+        self.frozen_stages = FrozenStages(prefix)
+        if isinstance(model, MatchingTracker) and model.backbone in prefix:
+            # the backbone alone reads its sampling orders: cached with its outputs
+            self.frozen_stages.wrap(model, "sampling_orders")
         self._actor_frozen = False
         # the mean of the last forward, (B, 4) [-1, 1] units: SelfCriticalReward reads it
         self.last_mean: torch.Tensor | None = None
@@ -321,19 +338,36 @@ class TrackerPolicy(ActorCriticPolicy):
         (broken weights must stop a run, not be trained on)."""
         batch, _ = self.tracker.prepare(obs)
         self.frozen_stages.start_forward(batch[self.tracker.point_keys[0]].shape[0])
+        executed_only = self._executed_gradient and torch.is_grad_enabled()
+        inference = self.tracker.inference
         with self.frozen_stages.replaying(features):
-            out = self.tracker(batch)
-        soft = None  # "best": the action tracker.act executes
-        if self.action_mode == "soft":
-            proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
-            weights = torch.softmax(scores / self.temperature, dim=1)
-            soft = (weights[..., None] * proposals).sum(dim=1)
-        # tracker.act's decision: no move where it keeps the box, the clip to max_action
-        a_max = self.max_action
-        action = decide(
-            self.tracker, batch, out, self.tracker.inference, action=soft, max_action=a_max
-        )
-        mean = action / a_max.to(action.dtype)
+            with torch.no_grad() if executed_only else contextlib.nullcontext():
+                out = self.tracker(batch)
+            observed = None  # what the still-target test and the re-ranking share
+            if inference.hold_chamfer_m > 0 or inference.rerank_top_k > 0:
+                observed = scenes(self.tracker, batch)
+            # the observation's alone: cached from the rollout like the frozen stages
+            keep = self.frozen_stages.call(keeps_box, self.tracker, batch, inference, observed)
+        if executed_only:
+            action = self._executed_action(batch, out, keep, observed)
+        else:
+            soft = None  # "best": the action tracker.act executes
+            if self.action_mode == "soft":
+                proposals, scores = out["proposals"], out["scores"]  # (B, P, 4), (B, P)
+                weights = torch.softmax(scores / self.temperature, dim=1)
+                soft = (weights[..., None] * proposals).sum(dim=1)
+            # tracker.act's decision: no move where it keeps the box, the clip to max_action
+            action = decide(
+                self.tracker,
+                batch,
+                out,
+                inference,
+                action=soft,
+                max_action=self.max_action,
+                keep=keep,
+                observed=observed,
+            )
+        mean = action / self.max_action.to(action.dtype)
         if not torch.isfinite(mean).all():
             raise FloatingPointError("TrackerPolicy: the tracker's action is NaN or inf")
         if not value:
@@ -347,6 +381,48 @@ class TrackerPolicy(ActorCriticPolicy):
         if not torch.isfinite(v).all():
             raise FloatingPointError("TrackerPolicy: the value head's output is NaN or inf")
         return mean, v
+
+    @property
+    def _executed_gradient(self) -> bool:
+        """Whether the forward runs without autograd and only the executed proposal's cluster
+        is evaluated again with it (:meth:`_executed_action`): the head alone trains, on a
+        matching tracker's best (or re-ranked) proposal, and the actor is not frozen."""
+        return (
+            self.executed_gradient_only
+            and self.action_mode == "best"
+            and self.train_parts == "head"
+            and isinstance(self.tracker, MatchingTracker)
+            and not self._actor_frozen
+        )
+
+    def _executed_action(
+        self,
+        batch: dict[str, torch.Tensor],
+        out: dict[str, torch.Tensor],
+        keep: torch.Tensor,
+        observed: list[Scene] | None,
+    ) -> torch.Tensor:
+        """:func:`trackers.decision.decide`'s action on ``out`` (a forward without autograd;
+        ``keep (B,)``: the still-target test), differentiable in the head's weights through
+        the executed proposal alone: the decision's choice is piecewise constant, so the other
+        proposals (~98 % of the head's work per state) add nothing to the gradient. The same
+        action and gradient as the full head's, to float rounding (tests/test_rl.py)."""
+        tracker, inference, a_max = self.tracker, self.tracker.inference, self.max_action
+        with torch.no_grad():
+            index = chosen_proposal(tracker, batch, out, inference, a_max, observed)
+            index = torch.where(keep, torch.full_like(index, -1), index)
+        proposal = clip_action(tracker.proposal_at(out, index.clamp(min=0)), a_max)
+        action = torch.where((index >= 0)[:, None], proposal, torch.zeros_like(proposal))
+        return decide(
+            tracker,
+            batch,
+            out,
+            inference,
+            action=action,
+            max_action=a_max,
+            keep=keep,
+            observed=observed,
+        )
 
     def gaussian(self, mean: torch.Tensor) -> torch.distributions.Normal:
         """The action distribution around ``mean (..., 4)`` ([-1, 1] units): independent

@@ -40,6 +40,7 @@ only the config and log of a run killed before its first checkpoint starts from 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import math
@@ -66,6 +67,7 @@ from training.allocator import retain_freed_memory
 from training.checkpoint import parent_entry
 from training.evaluate import env_options_for, evaluate, observation_keys_for
 from training.loading import load_tracker
+from training.parallel import torch_threads, usable_cores
 from training.provenance import check_finetune_categories, finetune_provenance
 from training.rl.config import RESUMABLE, FinetuneConfig, FinetuneError, NonFiniteError
 from training.rl.group_ppo import GroupPPO
@@ -543,20 +545,22 @@ def finetune(
             0.0,
             None,
         )
-    torch.set_num_threads(cfg.threads)
+    if cfg.threads is None:  # recorded in config.json as the count that ran
+        cfg = dataclasses.replace(cfg, threads=usable_cores())
     if not str(cfg.device).startswith("cuda"):  # the update's big activations (allocator doc)
         retain_freed_memory()
     factory = make_env or train_env_factory(cfg, base.env_options, observation_keys_for([base]))
     out.mkdir(parents=True, exist_ok=True)
     remove_stale_temps(out)
     atomic_write_text(out / "config.json", json.dumps(_identity(cfg), indent=2) + "\n")
-    if cfg.algo == "residual":
-        result = _finetune_residual(cfg, base, out, factory)
-    else:
-        run = PPORun(
-            cfg, out, factory, base=base, resume_meta=resume_meta, progress=progress, log=log
-        )
-        result = run.run()
+    with torch_threads(cfg.threads):
+        if cfg.algo == "residual":
+            result = _finetune_residual(cfg, base, out, factory)
+        else:
+            run = PPORun(
+                cfg, out, factory, base=base, resume_meta=resume_meta, progress=progress, log=log
+            )
+            result = run.run()
     if make_env is None and cfg.val_max_tracklets > 0:
         result.val = val_check(cfg, base, load_result(out), out)
         for name in ("base", "finetuned"):
