@@ -8,9 +8,10 @@ tracker always runs in eval mode. :class:`FrozenStages` wraps those stages' entr
 (``forward``, and ``forward_many`` where a stage has one): while :meth:`FrozenStages.recording`
 is on it keeps each call's outputs, and under :meth:`FrozenStages.replaying` the calls return
 the kept outputs of the minibatch's rows instead of running, so an update epoch runs only the
-trained stages and the decision step. Outputs must have the batch as their leading dimension
-(every tensor leaf); a stage whose outputs do not is simply not cached (the update then runs
-it).
+trained stages and the decision step. :meth:`FrozenStages.call` does the same for any other
+computation that depends on the observation alone (the policy's still-target test, a matching
+tracker's sampling orders). Outputs must have the batch as their leading dimension (every
+tensor leaf); a stage whose outputs do not is simply not cached (the update then runs it).
 """
 
 from __future__ import annotations
