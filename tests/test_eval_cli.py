@@ -175,3 +175,48 @@ def test_select_and_demo_take_workers(tmp_path, capsys):
     assert main(["select", "previous_box", "--preset", "tiny", "--workers", "0"]) == 2
     _one_line(capsys, "pointtrack select:", "--workers must be an integer >= 1; got 0")
     assert os.listdir(tmp_path) == []
+
+
+_ENTRY = """
+import atexit, sys
+class Teardown:
+    def __del__(self):
+        print("teardown ran", flush=True)
+marker = Teardown()
+atexit.register(lambda: print("atexit ran", flush=True))
+from training.cli import entry
+sys.argv = ["pointtrack", *sys.argv[1:]]
+entry()
+"""
+
+
+def test_the_console_entry_skips_the_teardown_after_eval_and_keeps_its_output(tmp_path):
+    """``training.cli.entry`` (the console script): ``eval`` (``FAST_EXIT``) ends the process
+    after flushing its output and running the ``atexit`` handlers, without the interpreter's
+    teardown (a module-level object's ``__del__`` does not run), and passes its status on (0,
+    a refusal's 2); a command without ``FAST_EXIT`` exits as usual."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+
+    def entry(*argv):
+        cmd = [sys.executable, "-c", _ENTRY, *argv]
+        return subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=tmp_path)
+
+    out = tmp_path / "out"
+    done = entry(
+        "eval", "--preset", "tiny", "--max-tracklets", "2", "--no-progress", "--out", str(out)
+    )
+    assert done.returncode == 0, done.stderr
+    assert "wrote" in done.stdout and "atexit ran" in done.stdout
+    assert "teardown ran" not in done.stdout
+    assert json.loads((out / "report.json").read_text())
+    refused = entry("eval", "--preset", "tiny", "--eval-seed", "-1")
+    assert refused.returncode == 2 and "--eval-seed must be >= 0" in refused.stderr
+    assert "atexit ran" in refused.stdout and "teardown ran" not in refused.stdout
+    other = entry("info", "p2b-kitti1-u")
+    assert other.returncode == 0, other.stderr
+    assert "atexit ran" in other.stdout and "teardown ran" in other.stdout

@@ -13,8 +13,11 @@ exits with status 130. Anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import atexit
+import contextlib
 import importlib
 import logging
+import os
 import sys
 
 from training.argconfig import apply_config
@@ -162,5 +165,24 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
+def entry() -> None:
+    """The ``pointtrack`` console script and ``python -m training.cli``: :func:`main`, then the
+    exit. A command whose module sets ``FAST_EXIT = True`` (everything it writes is closed,
+    atomically, before it returns) ends the process with ``os._exit`` once stdout, stderr and
+    the ``atexit`` handlers are done: the interpreter's teardown of torch's and numba's modules
+    alone costs ~0.6 s (8 % of a ``pointtrack eval`` of the ``small`` test split)."""
+    argv = sys.argv[1:]
+    code = main(argv)
+    command = _requested_command(argv)
+    module = sys.modules.get(f"training.commands.{COMMANDS[command][0]}") if command else None
+    if getattr(module, "FAST_EXIT", False):
+        with contextlib.suppress(OSError):  # a closed pipe: as a normal exit, not an error
+            sys.stdout.flush()
+            sys.stderr.flush()
+        atexit._run_exitfuncs()  # what a normal exit runs before the teardown
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()
