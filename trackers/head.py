@@ -122,8 +122,9 @@ class VotingHead(nn.Module):
             votes[rows, index][:, None],
         )
         seeds = torch.cat([point, rows * m + index])  # the members, then the centres
-        _, vote_xyz, _, per_vote = self._votes(
-            xyz.reshape(b * m, 3)[seeds][None], z.reshape(b * m, -1)[seeds][None]
+        _, vote_xyz, _, per_vote = self._votes(  # index_select: its backward is the cheaper
+            xyz.reshape(b * m, 3).index_select(0, seeds)[None],
+            z.reshape(b * m, -1).index_select(0, seeds)[None],
         )
         centres = vote_xyz[0, len(point) :, None]  # (B, 1, 3)
         w, _ = self.aggregate.linear_params(0)
