@@ -336,6 +336,10 @@ def crop_nearest_kernel(njit: Callable) -> Callable:
                     and z > floor[0]
                 )
                 in_crop[c, i] = inside
+                # nearest_kernel's loop, repeated: a kernel cannot call another compiled one
+                # without a dispatcher in its closure, which misses numba's disk cache in every
+                # process (see hash_kernel); two passes (the crops, then nearest_kernel) cost
+                # the re-ranking ~20 % more (0.40-0.47 against 0.31-0.40 ms per observation)
                 best = inf
                 if inside:
                     for j in range(f):
