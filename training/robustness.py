@@ -52,6 +52,7 @@ from envs.metrics import robustness_metrics
 from envs.plotting import pyplot, save_figure
 from envs.weather.levels import KINDS, LEVELS, check_kind, check_level, describe
 from training.parallel import map_forked
+from training.rundir import atomic_write_text
 
 __all__ = [
     "DISTANCE_EDGES_M",
@@ -524,8 +525,8 @@ def save_weather(result: dict[str, Any], out_dir: str | Path) -> list[Path]:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "weather.json", out / "weather_table.txt"]
-    paths[0].write_text(json.dumps(_json_safe(result), indent=1) + "\n")
-    paths[1].write_text(format_weather_table(result) + "\n")
+    atomic_write_text(paths[0], json.dumps(_json_safe(result), indent=1) + "\n")
+    atomic_write_text(paths[1], format_weather_table(result) + "\n")
     paths.append(plot_success_vs_level(result, out / "weather_success.png"))
     if any(result["analysis"].get(k) for k in result["kinds"]):
         paths.append(plot_analysis(result, out / "weather_analysis.png"))

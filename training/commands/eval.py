@@ -28,8 +28,9 @@ from typing import Any
 from envs.data.nuscenes import SOT_SPLITS
 from envs.tracking_env import TEMPLATE_MODES, make_tracking_env
 
-#: the report, plots and box files are written atomically and closed before ``run`` returns:
-#: the command line may skip the interpreter's teardown (:func:`training.cli.entry`)
+#: the report, plots, weather tables and box files are written atomically (the boxes' result
+#: folder renamed into place) and closed before ``run`` returns: the command line may skip the
+#: interpreter's teardown (:func:`training.cli.entry`)
 FAST_EXIT = True
 
 
