@@ -16,6 +16,7 @@ from envs.tracking_env import TrackingEnv, make_toy_dataset
 from trackers.base import prepare_observation
 from trackers.decision import InferenceConfig, keeps_box
 from training.rl import GroupPPO, ScaledAdam, SelfCriticalReward, TrackerPolicy
+from training.rl.features import PerState
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 ONE = np.ones(4, dtype=np.float32)
@@ -488,6 +489,9 @@ def test_group_ppo_cached_features_update_equals_uncached(data, train_parts):
         runs[cache] = model
     cached, plain = runs[True], runs[False]
     buf = cached.rollout_buffer
+    # the decision step's scenes are kept too, one per state, with the still-target test
+    kept = [call for call in buf.features.calls if isinstance(call, PerState)]
+    assert len(kept) == 1 and len(kept[0]) == buf.size
     base_state = base.state_dict()
     assert any(  # the update trained something: the head below is not the base's
         not torch.equal(v, base_state[k]) for k, v in cached.policy.tracker.state_dict().items()

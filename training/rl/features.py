@@ -9,9 +9,10 @@ tracker always runs in eval mode. :class:`FrozenStages` wraps those stages' entr
 is on it keeps each call's outputs, and under :meth:`FrozenStages.replaying` the calls return
 the kept outputs of the minibatch's rows instead of running, so an update epoch runs only the
 trained stages and the decision step. :meth:`FrozenStages.call` does the same for any other
-computation that depends on the observation alone (the policy's still-target test, a matching
-tracker's sampling orders). Outputs must have the batch as their leading dimension (every
-tensor leaf); a stage whose outputs do not is simply not cached (the update then runs it).
+computation that depends on the observation alone (the policy's decision-step scenes, kept as
+:class:`PerState` objects, its still-target test, a matching tracker's sampling orders).
+Outputs must have the batch as their leading dimension (every tensor leaf); a stage whose
+outputs do not is simply not cached (the update then runs it).
 """
 
 from __future__ import annotations
@@ -24,17 +25,45 @@ from typing import Any
 import torch
 from torch import nn
 
-__all__ = ["FrozenStages", "StageFeatures"]
+__all__ = ["FrozenStages", "PerState", "StageFeatures"]
 
 #: the entry points of a stage the tracker calls (the backbone's ``forward_many`` runs the
 #: template and the search region together)
 _ENTRY_POINTS = ("forward", "forward_many")
 
 
+class PerState(tuple):
+    """Python objects, one per state of a forward (not tensors: the decision step's
+    :class:`trackers.decision.Scene` s): a leaf of a frozen call's outputs that is kept,
+    concatenated and selected by rows as its tensors are."""
+
+
+def _detach(leaf: Any) -> Any:
+    return leaf.detach() if isinstance(leaf, torch.Tensor) else leaf
+
+
+def _cat(*parts: Any) -> Any:
+    if isinstance(parts[0], PerState):
+        return PerState(item for part in parts for item in part)
+    return torch.cat(parts)
+
+
+def _take(leaf: Any, rows: torch.Tensor) -> Any:
+    return PerState(leaf[i] for i in rows.tolist()) if isinstance(leaf, PerState) else leaf[rows]
+
+
+def _rows(leaf: torch.Tensor | PerState) -> int | None:
+    """The leading (state) dimension of a leaf; None for a 0-dim tensor."""
+    if isinstance(leaf, PerState):
+        return len(leaf)
+    return leaf.shape[0] if leaf.dim() else None
+
+
 def _tree_map(fn: Callable[..., Any], *trees: Any) -> Any:
-    """``fn`` on the tensor leaves of nested tuples / lists / dicts (``None`` kept)."""
+    """``fn`` on the tensor (and :class:`PerState`) leaves of nested tuples / lists / dicts
+    (``None`` kept)."""
     first = trees[0]
-    if isinstance(first, torch.Tensor):
+    if isinstance(first, torch.Tensor | PerState):
         return fn(*trees)
     if isinstance(first, tuple | list):
         return type(first)(_tree_map(fn, *parts) for parts in zip(*trees, strict=True))
@@ -43,8 +72,8 @@ def _tree_map(fn: Callable[..., Any], *trees: Any) -> Any:
     return first
 
 
-def _leaves(tree: Any) -> list[torch.Tensor]:
-    found: list[torch.Tensor] = []
+def _leaves(tree: Any) -> list[torch.Tensor | PerState]:
+    found: list[torch.Tensor | PerState] = []
     _tree_map(lambda t: found.append(t), tree)
     return found
 
@@ -58,7 +87,7 @@ class StageFeatures:
 
     def select(self, rows: torch.Tensor) -> StageFeatures:
         """The outputs of the states ``rows (b,)`` (indices into ``S``)."""
-        return StageFeatures([_tree_map(lambda t: t[rows], call) for call in self.calls])
+        return StageFeatures([_tree_map(lambda t: _take(t, rows), call) for call in self.calls])
 
 
 class FrozenStages:
@@ -104,7 +133,7 @@ class FrozenStages:
         finally:
             self._depth -= 1
         if self._depth == 0 and self._forwards is not None:
-            self._forwards[-1].append(_tree_map(torch.Tensor.detach, out))
+            self._forwards[-1].append(_tree_map(_detach, out))
         return out
 
     def start_forward(self, batch_size: int) -> None:
@@ -116,7 +145,7 @@ class FrozenStages:
 
     def _check_last(self) -> None:
         if self._forwards and any(
-            leaf.dim() == 0 or leaf.shape[0] != self._batch_sizes[-1]
+            _rows(leaf) != self._batch_sizes[-1]
             for call in self._forwards[-1]
             for leaf in _leaves(call)
         ):
@@ -135,8 +164,7 @@ class FrozenStages:
             forwards = self._forwards
             if self.cacheable and forwards and all(len(f) == len(forwards[0]) for f in forwards):
                 calls = [
-                    _tree_map(lambda *parts: torch.cat(parts), *(f[i] for f in forwards))
-                    for i in range(len(forwards[0]))
+                    _tree_map(_cat, *(f[i] for f in forwards)) for i in range(len(forwards[0]))
                 ]
                 result[0] = StageFeatures(calls)
         finally:

@@ -90,7 +90,7 @@ from trackers.decision import (
     keeps_box,
     scenes,
 )
-from training.rl.features import FrozenStages, StageFeatures
+from training.rl.features import FrozenStages, PerState, StageFeatures
 
 __all__ = [
     "ACTION_MODES",
@@ -162,6 +162,11 @@ class _SearchCritic(nn.Module):
     def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
         pooled = self.point(obs["search"]).amax(dim=1)
         return self.out(torch.cat([pooled, obs["size"], obs["motion"]], dim=-1)).squeeze(-1)
+
+
+def _scenes(tracker: Tracker, batch: dict[str, torch.Tensor]) -> PerState:
+    """The batch's :func:`trackers.decision.scenes`, one per state (a cacheable frozen call)."""
+    return PerState(scenes(tracker, batch))
 
 
 def resolve_tracker(tracker: Any) -> Tracker:
@@ -343,10 +348,11 @@ class TrackerPolicy(ActorCriticPolicy):
         with self.frozen_stages.replaying(features):
             with torch.no_grad() if executed_only else contextlib.nullcontext():
                 out = self.tracker(batch)
+            # the observation's alone, so cached from the rollout like the frozen stages: the
+            # scenes (with the point sets the still-target test computed) and the test itself
             observed = None  # what the still-target test and the re-ranking share
             if inference.hold_chamfer_m > 0 or inference.rerank_top_k > 0:
-                observed = scenes(self.tracker, batch)
-            # the observation's alone: cached from the rollout like the frozen stages
+                observed = list(self.frozen_stages.call(_scenes, self.tracker, batch))
             keep = self.frozen_stages.call(keeps_box, self.tracker, batch, inference, observed)
         if executed_only:
             action = self._executed_action(batch, out, keep, observed)
