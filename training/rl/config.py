@@ -145,10 +145,9 @@ class FinetuneConfig:
                 )
             )
         for name in ("timesteps", "num_envs", "n_epochs", "threads", "save_every"):
-            if name == "threads" and self.threads is None:
-                continue
-            if getattr(self, name) < 1:
-                errors.append((name, f"{name} must be >= 1, got {getattr(self, name)}"))
+            value = getattr(self, name)
+            if value is not None and value < 1:  # threads None: every usable core
+                errors.append((name, f"{name} must be >= 1, got {value}"))
         for name in ("n_steps", "batch_size"):
             if getattr(self, name) < 2:
                 errors.append((name, f"{name} must be >= 2, got {getattr(self, name)}"))

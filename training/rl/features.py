@@ -123,7 +123,7 @@ class FrozenStages:
         """``fn(*args, **kwargs)`` as a frozen stage: under ``no_grad``, its outputs kept while
         recording and returned from the cache while replaying. The stages' entry points go
         through here, and so can any other computation that depends on the observation alone
-        (the policy's still-target test)."""
+        (the policy's decision-step scenes and still-target test)."""
         if self._depth == 0 and self._replay is not None:
             return self._replay.pop(0)
         self._depth += 1
