@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from envs.files import atomic_path
+
 
 def pyplot() -> Any:
     """``matplotlib.pyplot`` on the file-only Agg backend (no display needed)."""
@@ -18,11 +20,11 @@ def pyplot() -> Any:
 
 
 def save_figure(fig: Any, path: str | Path, dpi: int) -> Path:
-    """Write ``fig`` as PNG to ``path`` (parent folders created), close it, return the path."""
+    """Write ``fig`` to ``path`` atomically in the format its suffix names (PNG without one;
+    parent folders created), close it, return the path."""
     import matplotlib.pyplot as plt
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=dpi)
+    with atomic_path(path) as tmp:  # the temporary's name has no format suffix
+        fig.savefig(tmp, dpi=dpi, format=Path(path).suffix.lstrip(".").lower() or "png")
     plt.close(fig)
-    return path
+    return Path(path)

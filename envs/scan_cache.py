@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.data.tracklet import Tracklet
+from envs.kernels import cell_sort_kernel
 from envs.observation import (
     SEARCH_OFFSET_M,
     SEARCH_SCALE,
@@ -255,6 +256,20 @@ def _sorted_index(
     )
     firsts = np.zeros(nx * ny + 1, np.int64)
     np.cumsum(np.bincount(key, minlength=nx * ny), out=firsts[1:])
+    return _index_of_rows(rows, firsts, nx, ny, gt, ix0, iy0)
+
+
+def _index_of_rows(
+    rows: np.ndarray,
+    firsts: np.ndarray,
+    nx: int,
+    ny: int,
+    gt: np.ndarray | None,
+    ix0: int,
+    iy0: int,
+) -> FrameIndex:
+    """:class:`FrameIndex` of coordinate rows ``(3, M)`` sorted by grid-local cell key, with the
+    first row of every key ``firsts (nx * ny + 1,)``."""
     cells = np.arange(nx)[:, None] * ny + np.arange(ny + 1)
     starts = firsts[cells].astype(np.int32)
     target = len(crop_box_frame(rows.T, gt)) if gt is not None and rows.shape[1] else 0
@@ -383,15 +398,32 @@ class TrackletScans:
 
     def _build_corridor(self, t: int) -> FrameIndex:
         cor = self.corridor
-        xyz = self.scan(t)[:, :3]
+        scan = self.scan(t)
+        gt = np.asarray(self.tracklet.boxes[t], dtype=np.float64)
         # the corridor's bounds widened by a cell: a cheap float superset of its points, so the
         # exact cell test runs on a few thousand points instead of the whole scan (same result)
+        bounds = np.array(
+            [(cor.ix0 - 1) * cor.cell, (cor.ix0 + cor.nx + 1) * cor.cell]
+            + [(cor.iy0 - 1) * cor.cell, (cor.iy0 + cor.ny + 1) * cor.cell],
+            dtype=np.float32,
+        )
+        kernel = cell_sort_kernel()
+        if kernel is not None:  # the same index in one compiled pass
+            rows, firsts = kernel(
+                np.ascontiguousarray(scan, dtype=np.float32),
+                cor.cell,
+                cor.ix0,
+                cor.iy0,
+                cor.nx,
+                cor.ny,
+                cor.occupancy.reshape(-1),
+                bounds,
+            )
+            return _index_of_rows(rows, firsts, cor.nx, cor.ny, gt, cor.ix0, cor.iy0)
+        xyz = scan[:, :3]
         x, y = xyz[:, 0], xyz[:, 1]
         near = np.flatnonzero(
-            (x >= (cor.ix0 - 1) * cor.cell)
-            & (x < (cor.ix0 + cor.nx + 1) * cor.cell)
-            & (y >= (cor.iy0 - 1) * cor.cell)
-            & (y < (cor.iy0 + cor.ny + 1) * cor.cell)
+            (x >= bounds[0]) & (x < bounds[1]) & (y >= bounds[2]) & (y < bounds[3])
         )
         xyz = xyz[near]
         ix, iy = _cells(xyz, cor.cell)
@@ -401,7 +433,6 @@ class TrackletScans:
         key = np.where(inside, ix * cor.ny + iy, 0)
         keep = inside & cor.occupancy.reshape(-1)[key]  # queries never read other cells
         sel = np.flatnonzero(keep)
-        gt = np.asarray(self.tracklet.boxes[t], dtype=np.float64)
         return _sorted_index(xyz, sel, key[sel], cor.nx, cor.ny, gt, cor.ix0, cor.iy0)
 
     def _direct_crop(self, t: int, box: np.ndarray, scale: float, offset_m: float) -> np.ndarray:

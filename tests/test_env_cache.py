@@ -131,3 +131,49 @@ def test_uniform_random_actions_observe_exactly_the_uncached_env(toy):
             a, b = a[0], b[0]
         for key in a:
             np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+@pytest.mark.parametrize("cell_m", [1.0, 0.7, 0.25])
+def test_compiled_corridor_index_equals_the_numpy_build(toy, cell_m, monkeypatch):
+    """The compiled corridor build (envs.kernels.cell_sort_kernel) against the numpy one: the
+    same rows in the same order and the same cell starts, on scans with points exactly on cell
+    borders (both signs), copies of points with other heights (the stable order of ties), and
+    points far outside the corridor; also a corridor scan without a point in it."""
+    if scan_cache.cell_sort_kernel() is None:
+        pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
+    tr = toy.tracklets[1]
+    rng = np.random.default_rng(4)
+
+    def edgy(pts, tid, frame):
+        centre = tr.boxes[0, :2]
+        borders = (np.floor(centre / cell_m) + rng.integers(-6, 7, (40, 2))) * cell_m
+        extra = np.column_stack([borders, rng.normal(0, 1, (40, 2))]).astype(np.float32)
+        twins = pts[: len(pts) // 3].copy()
+        twins[:, 2] += 0.5
+        far = np.array([[1e4, -1e4, 0, 0], [-3e3, 5, 0, 0]], np.float32)
+        return np.concatenate([pts, extra, -extra, twins, far]).astype(np.float32)
+
+    def nothing_near(pts, tid, frame):
+        return pts[:3] + np.float32(500.0)
+
+    for transform in (edgy, nothing_near):
+        built = []
+        for kernel in (scan_cache.cell_sort_kernel, lambda: None):
+            monkeypatch.setattr(scan_cache, "cell_sort_kernel", kernel)
+            scans = scans_of(tr, cell_m=cell_m, transform=transform)
+            rng = np.random.default_rng(4)  # the same extra points for both builds
+            built.append([scans.index(t) for t in range(len(tr))])
+        for fast, plain in zip(*built, strict=True):
+            assert fast.xyz.dtype == plain.xyz.dtype == np.float32
+            np.testing.assert_array_equal(fast.xyz, plain.xyz)
+            np.testing.assert_array_equal(fast.starts, plain.starts)
+            assert fast.starts.dtype == plain.starts.dtype == np.int32
+            assert (fast.target_points, fast.ix0, fast.iy0) == (
+                plain.target_points,
+                plain.ix0,
+                plain.iy0,
+            )
+        if transform is edgy:
+            assert sum(idx.xyz.shape[1] for idx in built[0]) > 100
+        else:
+            assert all(idx.xyz.shape[1] == 0 for idx in built[0])

@@ -132,6 +132,9 @@ def test_outputs(toy, tmp_path):
     paths = plot_curves(reports, tmp_path)
     assert [p.name for p in paths] == ["success.png", "precision.png"]
     assert all(p.stat().st_size > 1000 for p in paths)
+    # drawn in two forked processes: the same files
+    forked = plot_curves(reports, tmp_path / "forked", workers=2)
+    assert [p.read_bytes() for p in forked] == [p.read_bytes() for p in paths]
 
 
 def test_baselines_single_and_batch():

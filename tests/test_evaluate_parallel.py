@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import threading
 
 import pytest
 
@@ -164,6 +165,26 @@ def test_map_forked_hands_out_items_dynamically():
     assert sorted(seen) == list(range(7))
     out = map_forked(lambda x: x * 2, list(range(7)), 2)
     assert out == [0, 2, 4, 6, 8, 10, 12]
+
+
+def test_map_forked_warm_up_runs_beside_the_workers():
+    """The caller's warm-up runs once, in a thread of the parent while the workers run (its
+    exception raised after them), and not at all without workers."""
+    calls = []
+
+    def warm_up():
+        calls.append((os.getpid(), threading.current_thread() is threading.main_thread()))
+
+    assert map_forked(lambda x: x + 1, [1, 2, 3], 2, warm_up=warm_up) == [2, 3, 4]
+    assert calls == [(os.getpid(), False)]
+    assert map_forked(lambda x: x + 1, [1, 2, 3], 1, warm_up=warm_up) == [2, 3, 4]
+    assert len(calls) == 1
+
+    def broken():
+        raise ImportError("no plotting library")
+
+    with pytest.raises(ImportError, match="no plotting library"):
+        map_forked(lambda x: x, [1, 2], 2, warm_up=broken)
 
 
 def test_cli_device_cuda_without_cuda_is_one_line(capsys):

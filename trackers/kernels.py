@@ -11,11 +11,12 @@ They run only on CPU float32 / float64 coordinates (:func:`compilable`).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 
 import numpy as np
 import torch
+
+from envs.kernels import compiled
 
 __all__ = [
     "ball_kernel",
@@ -41,24 +42,7 @@ def compilable(*points: torch.Tensor) -> bool:
     )
 
 
-def _compiled(build: Callable[[Callable], Callable]) -> Callable[[], Callable | None]:
-    """A kernel getter: ``build(njit)`` with numba's ``njit(cache=True, nogil=True)`` on the
-    first call (compiled on first use, cached on disk by numba), ``None`` without numba (the
-    ``fast`` extra): the callers then run their torch paths."""
-
-    @functools.cache
-    def kernel() -> Callable | None:
-        try:
-            import numba
-        except ImportError:
-            return None
-        return build(numba.njit(cache=True, nogil=True))
-
-    kernel.__doc__ = build.__doc__
-    return kernel
-
-
-@_compiled
+@compiled
 def hash_kernel(njit: Callable) -> Callable:
     """The compiled :func:`trackers.ops.hash_orders` of one cloud ``(xyz (B, N, 3), quantum,
     start, start2, out (B, N) int64)``: the same two hash chains, occurrence ranks and stable
@@ -106,7 +90,7 @@ def hash_kernel(njit: Callable) -> Callable:
     return hash_rows
 
 
-@_compiled
+@compiled
 def fps_kernel(njit: Callable) -> Callable:
     """The compiled FPS loop ``(xyz (B, N, 3) float ndarray, n, start, out (B, n) int64)``, or
     ``None`` without numba (imported and compiled on first use; cached on disk by numba)."""
@@ -133,7 +117,7 @@ def fps_kernel(njit: Callable) -> Callable:
     return fps_rows
 
 
-@_compiled
+@compiled
 def ball_kernel(njit: Callable) -> Callable:
     """The compiled ball query ``(xyz (B, N, 3), centres (B, M, 3), r2, k) -> (group (P,),
     point (P,))`` of :func:`trackers.ops.ball_query_pairs` (flat indices). Per centre it scans
@@ -167,7 +151,7 @@ def ball_kernel(njit: Callable) -> Callable:
     return ball_pairs
 
 
-@_compiled
+@compiled
 def knn_kernel(njit: Callable) -> Callable:
     """The compiled :func:`trackers.ops.knn` for coordinates ``(query (B, M, 3), ref (B, N,
     3), sqdist (B, M, k) out, idx (B, M, k) out)``, ``k <= N``: per query the ``k`` smallest
@@ -223,7 +207,7 @@ def knn_kernel(njit: Callable) -> Callable:
     return knn_rows
 
 
-@_compiled
+@compiled
 def distinct_kernel(njit: Callable) -> Callable:
     """The compiled :func:`trackers.ops.distinct_points` of one cloud ``(bits (L, 3) int32: the
     float32 points' bits, mask (L,) bool, first (L,) int64 out, layout (L,) int64 out) -> U``:
@@ -266,7 +250,7 @@ def distinct_kernel(njit: Callable) -> Callable:
     return distinct_rows
 
 
-@_compiled
+@compiled
 def nearest_kernel(njit: Callable) -> Callable:
     """The compiled :func:`trackers.ops.nearest_distances` before its square roots: ``(a (K, U,
     3), a_in (K, U) bool, b (V, 3), a_near (K, U) out, b_near (K, V) out)``, every pair's
@@ -298,7 +282,7 @@ def nearest_kernel(njit: Callable) -> Callable:
     return nearest_rows
 
 
-@_compiled
+@compiled
 def crop_nearest_kernel(njit: Callable) -> Callable:
     """The re-ranking's crops and nearest distances of one observation, every candidate box in
     one pass (:func:`trackers.decision._crop_distances`): ``(points (U, 3), cos (C,), sin (C,),

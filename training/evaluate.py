@@ -207,6 +207,7 @@ def evaluate(
     num_envs: int = 1,
     workers: int | None = 1,
     record_boxes: bool = False,
+    warm_up: Callable[[], Any] | None = None,
 ) -> dict[str, Any]:
     """Run ``tracker`` over every tracklet of ``env`` once and report OPE Success / Precision.
 
@@ -237,6 +238,9 @@ def evaluate(
             :class:`~training.parallel.WorkerDiedError` naming its tracklets.
         record_boxes: also return every frame's predicted and true box as ``report["boxes"]``
             (:mod:`training.boxes` writes and re-scores them).
+        warm_up: the caller's next step's preparation (e.g. importing matplotlib for the
+            plots), run in a thread of this process while the forked workers run
+            (:func:`~training.parallel.map_forked`); not run without workers.
 
     Returns:
         The report described in the module docstring. ``act`` is called once per step;
@@ -264,7 +268,7 @@ def evaluate(
             )
         owned = env = gym.vector.SyncVectorEnv([env.clone for _ in range(num_envs)])
     run = _run_vector if isinstance(env, gym.vector.VectorEnv) else _run_single
-    opts = _RunOptions(seed, progress, name, workers, record_boxes)
+    opts = _RunOptions(seed, progress, name, workers, record_boxes, warm_up)
     try:
         with _episodes_seeded(env, seed), one_torch_thread():
             episodes, env_info = run(tracker, env, tracklets, opts)
@@ -369,6 +373,7 @@ class _RunOptions:
     name: str
     workers: int
     record_boxes: bool
+    warm_up: Callable[[], Any] | None = None
 
 
 @dataclass
@@ -476,17 +481,23 @@ def _run_sharded(tracker, env, indices: list[int], opts: _RunOptions, tick) -> l
     def one(index: int) -> _Episode:
         return _run_episode(tracker, env, index, opts.seed, opts.record_boxes)
 
-    episodes = map_forked(one, order, opts.workers, tick, label=lambda i: f"tracklet {ids[i]}")
+    episodes = map_forked(
+        one, order, opts.workers, tick, label=lambda i: f"tracklet {ids[i]}", warm_up=opts.warm_up
+    )
     by_index = dict(zip(order, episodes, strict=True))
     return [by_index[i] for i in indices]
 
 
 def _load_kernels_before_fork(tracker: Any) -> None:
-    """A learned tracker's compiled point ops loaded here, once per process: every evaluation
-    forks new workers (each eval seed, each ``select`` candidate and world), and each would
-    start numba and read its cache again (:func:`trackers.ops.load_kernels`)."""
+    """The env's compiled scan index and a learned tracker's compiled point ops loaded here,
+    once per process: every evaluation forks new workers (each eval seed, each ``select``
+    candidate and world), and each would start numba and read its cache again
+    (:func:`envs.kernels.load_kernels`, :func:`trackers.ops.load_kernels`)."""
     import torch
 
+    from envs.kernels import load_kernels as load_env_kernels
+
+    load_env_kernels()
     if isinstance(tracker, torch.nn.Module):
         from trackers.ops import load_kernels
 

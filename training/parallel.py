@@ -95,6 +95,7 @@ def map_forked(
     done: Callable[[Any, Any], None] | None = None,
     *,
     label: Callable[[Any], str] = repr,
+    warm_up: Callable[[], Any] | None = None,
 ) -> list[Any]:
     """``[fn(item) for item in items]``, in ``workers`` forked processes when ``workers > 1``.
 
@@ -104,6 +105,10 @@ def map_forked(
         workers: number of processes (``None`` or ``<= 1``: in this process, no fork).
         done: ``done(item, result)`` in the parent as each result arrives (a progress bar).
         label: how an item is named in an error (default ``repr``).
+        warm_up: work of the caller's next step (e.g. importing a library for its report),
+            run once in a thread of this process while the workers run, on the core the
+            waiting parent leaves idle (started after the last fork, joined before returning;
+            its exception is raised then). Not run without workers: nothing would overlap.
 
     Raises:
         WorkerDiedError: a worker ended without the result of the item it was given.
@@ -133,7 +138,8 @@ def map_forked(
             pool.procs.append(proc)
         for w in range(len(pool.procs)):
             pool.hand_out(w, items, label)
-        return pool.collect(items, done, label)
+        with _alongside(warm_up):
+            return pool.collect(items, done, label)
     finally:
         for proc in pool.procs:
             if proc.is_alive():
@@ -141,6 +147,33 @@ def map_forked(
             proc.join()
         for conn in pool.conns:
             conn.close()
+
+
+@contextlib.contextmanager
+def _alongside(task: Callable[[], Any] | None) -> Iterator[None]:
+    """Run ``task`` in a thread during the block; join it after, raising what it raised (unless
+    the block itself raises: that error wins)."""
+    if task is None:
+        yield
+        return
+    import threading
+
+    failure: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            task()
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+            failure.append(exc)
+
+    thread = threading.Thread(target=run, name="map_forked-warm-up", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        thread.join()
+    if failure:
+        raise failure[0]
 
 
 def _work(fn: Callable[[Any], Any], items: Sequence[Any], conn: Any) -> None:

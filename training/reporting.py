@@ -149,36 +149,48 @@ def save_report(report: Mapping[str, Any], path: str | Path) -> Path:
 
 
 def plot_curves(
-    reports: Mapping[str, Mapping[str, Any]], out_dir: str | Path, prefix: str = ""
+    reports: Mapping[str, Mapping[str, Any]],
+    out_dir: str | Path,
+    prefix: str = "",
+    workers: int | None = 1,
 ) -> list[Path]:
     """Draw ``<prefix>success.png`` and ``<prefix>precision.png`` in ``out_dir``: one panel per
-    group (mean, observed, unseen) with one curve per tracker; returns the paths."""
-    plt = pyplot()
+    group (mean, observed, unseen) with one curve per tracker; returns the paths. ``workers >
+    1`` draws the two in forked processes (:func:`~training.parallel.map_forked`)."""
+    from training.parallel import map_forked
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths = []
     groups = [
         g for g in ("mean", "observed", "unseen") if any(r[g]["frames"] for r in reports.values())
     ]
-    for key, xs, xlabel, ylabel in (
-        ("success", THRESHOLDS_IOU, "overlap threshold (3D IoU)", "success rate"),
-        ("precision", THRESHOLDS_M, "centre error threshold (m)", "precision"),
-    ):
-        fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.6), squeeze=False)
-        for ax, g in zip(axes[0], groups, strict=True):
-            for n, r in reports.items():
-                e = r[g]
-                if not e["frames"] or f"{key}_curve" not in e:
-                    continue
-                ax.plot(xs, e[f"{key}_curve"], label=f"{n} [{e[key]:.1f}]")
-            ax.set_title(f"{key.capitalize()} — {g}")
-            ax.set_xlabel(xlabel)
-            ax.set_ylabel(ylabel)
-            ax.set_ylim(0, 1.02)
-            ax.grid(alpha=0.3)
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = out / f"{prefix}{key}.png"
-        paths.append(save_figure(fig, path, 110))
-    return paths
+
+    def draw(key: str) -> Path:
+        return _plot_curve(reports, groups, key, out / f"{prefix}{key}.png")
+
+    return map_forked(draw, ["success", "precision"], workers, label=lambda key: f"{key} plot")
+
+
+def _plot_curve(
+    reports: Mapping[str, Mapping[str, Any]], groups: list[str], key: str, path: Path
+) -> Path:
+    xs, xlabel, ylabel = {
+        "success": (THRESHOLDS_IOU, "overlap threshold (3D IoU)", "success rate"),
+        "precision": (THRESHOLDS_M, "centre error threshold (m)", "precision"),
+    }[key]
+    plt = pyplot()
+    fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.6), squeeze=False)
+    for ax, g in zip(axes[0], groups, strict=True):
+        for n, r in reports.items():
+            e = r[g]
+            if not e["frames"] or f"{key}_curve" not in e:
+                continue
+            ax.plot(xs, e[f"{key}_curve"], label=f"{n} [{e[key]:.1f}]")
+        ax.set_title(f"{key.capitalize()} — {g}")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel(ylabel)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return save_figure(fig, path, 110)

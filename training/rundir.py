@@ -3,7 +3,8 @@
 
 * **Atomic writes**: :func:`atomic_path` (a context manager: write the yielded temporary sibling
   ``.NAME.tmpPID`` by any means, it is flushed to disk with ``fsync`` and renamed into place),
-  :func:`atomic_write_text` and :func:`atomic_write_bytes`. A killed process leaves either the
+  :func:`atomic_write_text` and :func:`atomic_write_bytes`, defined in :mod:`envs.files` (the
+  env's pictures use them too) and re-exported here. A killed process leaves either the
   previous file or the new one, never a truncated one; :func:`remove_stale_temps` deletes the
   temporaries of dead processes.
 * **Run directories**: :func:`prepare_run_dir` decides, before any data is built, whether a run
@@ -19,14 +20,14 @@
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
 import shutil
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+
+from envs.files import atomic_path, atomic_write_bytes, atomic_write_text
 
 __all__ = [
     "FINETUNE_LAYOUT",
@@ -47,42 +48,6 @@ __all__ = [
 
 class RunDirError(ValueError):
     """A run directory that cannot be used as asked (the message names the directory)."""
-
-
-# --------------------------------------------------------------------------- atomic writes
-
-
-def _temp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
-
-
-@contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path`` to write; on a clean exit it is fsynced and
-    renamed onto ``path`` (``os.replace``), on an exception removed. The parent directory is
-    created."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _temp_name(path)
-    try:
-        yield tmp
-        with open(tmp, "rb+") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (:func:`atomic_path`); returns the path."""
-    with atomic_path(path) as tmp:
-        tmp.write_bytes(data)
-    return Path(path)
-
-
-def atomic_write_text(path: str | Path, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically (:func:`atomic_path`); returns the path."""
-    return atomic_write_bytes(path, text.encode())
 
 
 def _pid_alive(pid: int) -> bool:

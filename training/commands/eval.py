@@ -311,13 +311,14 @@ def run(args: argparse.Namespace) -> int:
         env.close()
     reports = {name: reports[name] for name in loaded}  # the order of --tracker
     reports = mark_unseen(reports, trained)  # unseen: only what the file never trained on
-    _print_and_save(args, reports, boxes)
+    _print_and_save(args, reports, boxes, plan.workers)
     return 0
 
 
 def _evaluate_seeds(args, plan: EvalPlan, tracker, env, name: str, subset):
     """One tracker at every eval seed -> (the combined report with intervals, ``{seed:
     per-tracklet boxes}`` when ``--save-boxes``)."""
+    from envs.plotting import pyplot
     from training.evaluate import evaluate
     from training.intervals import add_intervals, combine_seeds
 
@@ -331,6 +332,7 @@ def _evaluate_seeds(args, plan: EvalPlan, tracker, env, name: str, subset):
             progress=not args.no_progress,
             workers=plan.workers,
             record_boxes=args.save_boxes,
+            warm_up=pyplot if args.out else None,  # for the plots; imported once per process
         )
         for seed in plan.seeds
     ]
@@ -340,8 +342,9 @@ def _evaluate_seeds(args, plan: EvalPlan, tracker, env, name: str, subset):
     return report, (boxes if args.save_boxes else None)
 
 
-def _print_and_save(args, reports: dict[str, Any], boxes: dict[str, Any]) -> None:
-    """Print the table; with ``--out``, the report, the plots and (``--save-boxes``) boxes."""
+def _print_and_save(args, reports: dict[str, Any], boxes: dict[str, Any], workers: int) -> None:
+    """Print the table; with ``--out``, the report, the plots (drawn over ``workers``
+    processes) and (``--save-boxes``) boxes."""
     from training.evaluate import format_table, plot_curves, save_report
 
     print(format_table(reports))
@@ -357,7 +360,7 @@ def _print_and_save(args, reports: dict[str, Any], boxes: dict[str, Any]) -> Non
             path = save_boxes(per_seed, name, out / "boxes", observed=_observed(reports[name]))
             print(f"wrote {path} and the per-tracklet result files beside it")
     save_report(reports, out / "report.json")
-    paths = plot_curves(reports, out)
+    paths = plot_curves(reports, out, workers=workers)
     print(f"wrote {out / 'report.json'} and {', '.join(str(p) for p in paths)}")
 
 
