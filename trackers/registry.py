@@ -41,13 +41,13 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 
+from envs.files import atomic_path, atomic_write_text
 from envs.spec import TEMPLATE_MODES, TRACKER_OPTION_KEYS, EnvOptions
 
 __all__ = [
@@ -310,17 +310,13 @@ def save(tracker: Any, path: str | Path, *, provenance: Any = None) -> Path:
         meta[METADATA_KEY] = provenance.to_json()
     state = {k: v.detach().cpu().contiguous() for k, v in tracker.state_dict().items()}
     _check_finite(path, state, "refusing to save")
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
+    with atomic_path(path) as tmp:
         if path.suffix in (".pt", ".pth"):
             torch.save({**meta, "state_dict": state}, tmp)
         else:
             from safetensors.torch import save_file
 
             save_file(state, str(tmp), metadata=meta)
-        tmp.replace(path)
-    finally:
-        tmp.unlink(missing_ok=True)
     return path
 
 
@@ -389,18 +385,15 @@ def write_manifest(directory: str | Path = CHECKPOINT_DIR) -> Path:
         for suffix in ("*.safetensors", "*.pt")
         for p in sorted(directory.glob(suffix))
     }
-    path = directory / MANIFEST.name
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(
+    return atomic_write_text(
+        directory / MANIFEST.name,
         json.dumps(
             {"format": _MANIFEST_FORMAT, "algorithm": "sha256", "files": files},
             indent=1,
             sort_keys=True,
         )
-        + "\n"
+        + "\n",
     )
-    tmp.replace(path)
-    return path
 
 
 def _verify_shipped(path: Path) -> None:
