@@ -138,6 +138,7 @@ def balanced_subset(categories: list[str], lengths: list[int], max_frames: int) 
 
 
 def run(args: argparse.Namespace) -> int:
+    from envs.plotting import pyplot
     from envs.synthetic import ensure_world
     from envs.tracking_env import OBSERVATION_KEYS, make_kitti_env
     from trackers.baselines import BASELINES
@@ -221,6 +222,7 @@ def run(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             num_envs=1 if baseline else args.num_envs,
             workers=1 if baseline else workers,
+            warm_up=pyplot,  # for the plots, beside the workers (imported once per process)
         )
         if own:
             target.close()
@@ -231,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(reports))
     out = Path(args.out)
     save_report(reports, out / "report.json")
-    paths = plot_curves(reports, out)
+    paths = plot_curves(reports, out, workers=workers)
     print(
         f"\n[demo] wrote {out / 'report.json'}, {', '.join(str(p) for p in paths)} "
         f"in {time.perf_counter() - start:.0f} s"
