@@ -8,7 +8,8 @@ commit's copy, so the options and the measurement are the same) in fresh subproc
 against this commit's packages and once against ``REV``'s (``POINTTRACK_CODE_ROOT`` says which
 tree :func:`use_code_root` puts first on ``sys.path``). The two alternate for ``--rounds``
 rounds, this commit first in even rounds and the baseline first in odd ones, so drift on the
-shared machine hits both; each metric keeps its best round. It prints both and their ratio.
+shared machine hits both; each metric keeps its best round. It prints both and their ratio,
+and with several rounds the lowest and highest ratio of a single round (the spread).
 """
 
 from __future__ import annotations
@@ -111,15 +112,21 @@ def run(args: argparse.Namespace, measure: Callable[[], dict[str, float]], unit:
     print(f"this: {head[:10]}{dirty} at {REPO}; baseline: {args.baseline} = {sha[:10]}")
     print(f"{args.clock} clock, best of {args.repeats} repeats x {args.rounds} rounds")
     best: dict[str, dict[str, float]] = {"this": {}, "baseline": {}}
+    ratios: dict[str, list[float]] = {}  # each round's this / baseline, per metric
     with _worktree(sha) as base_root:
         for r in range(args.rounds):
             sides = [("this", REPO), ("baseline", base_root)]
+            round_results = {}
             for side, root in sides if r % 2 == 0 else sides[::-1]:
-                results = _subprocess(script, argv, root)
-                for key, value in results.items():
+                round_results[side] = _subprocess(script, argv, root)
+                for key, value in round_results[side].items():
                     best[side][key] = max(best[side].get(key, 0.0), value)
+            for key, value in round_results["this"].items():
+                base = round_results["baseline"].get(key)
+                if base:
+                    ratios.setdefault(key, []).append(value / base)
             print(f"round {r + 1}/{args.rounds} done, load average {os.getloadavg()[0]:.2f}")
-    _print_table(best, unit)
+    _print_table(best, unit, ratios if args.rounds > 1 else None)
     return 0
 
 
@@ -174,8 +181,14 @@ def _write_json(path: Path, results: dict[str, float]) -> None:
     tmp.replace(path)
 
 
-def _print_table(results: dict[str, dict[str, float]], unit: str) -> None:
-    """One row per metric: each side's rate and, with a baseline, this / baseline."""
+def _print_table(
+    results: dict[str, dict[str, float]],
+    unit: str,
+    round_ratios: dict[str, list[float]] | None = None,
+) -> None:
+    """One row per metric: each side's rate and, with a baseline, this / baseline (of the best
+    rates), then the lowest and highest ratio of a single round when ``round_ratios`` is
+    given: the spread of the comparison on this machine."""
     keys = list(dict.fromkeys(k for side in results.values() for k in side))
     width = max([len(k) for k in keys] + [6])
     sides = list(results)
@@ -187,4 +200,7 @@ def _print_table(results: dict[str, dict[str, float]], unit: str) -> None:
         ratio = ""
         if "baseline" in results and None not in values and values[1] > 0:
             ratio = f"  {values[0] / values[1]:.2f}x"
+        if round_ratios and round_ratios.get(key):
+            spread = round_ratios[key]
+            ratio += f"  (rounds {min(spread):.2f}-{max(spread):.2f}x)"
         print(f"{key:<{width}}  {cells}{ratio}")
