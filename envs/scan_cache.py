@@ -233,30 +233,24 @@ class FrameIndex:
         return width + stop - start
 
 
-def _sorted_index(
-    xyz: np.ndarray,
-    sel: np.ndarray | None,
-    key: np.ndarray,
-    nx: int,
-    ny: int,
-    gt: np.ndarray | None,
-    ix0: int,
-    iy0: int,
-) -> FrameIndex:
-    """:class:`FrameIndex` of the points ``xyz[sel]`` (``xyz (N, 3)``; ``sel (M,)`` increasing
-    indices, ``None``: all) with grid-local cell keys ``key (M,)`` = ``x * ny + y``
-    (``target_points`` counted in ``gt`` when given, else 0)."""
+def _sorted_rows(
+    xyz: np.ndarray, sel: np.ndarray | None, key: np.ndarray, cells: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The points ``xyz[sel]`` (``xyz (N, 3)``; ``sel (M,)`` increasing indices, ``None``: all)
+    sorted by their grid-local cell keys ``key (M,)`` (of ``cells`` cells), ties in scan order,
+    as coordinate rows ``(3, M)`` float32, and the first row of every key ``(cells + 1,)``
+    (what :func:`envs.kernels.cell_sort_kernel` returns)."""
     # stable: ties stay in scan order; 16-bit keys take numpy's radix sort (linear time, the
     # same permutation: a stable sort's result is unique)
-    perm = np.argsort(key.astype(np.uint16) if nx * ny <= 1 << 16 else key, kind="stable")
+    perm = np.argsort(key.astype(np.uint16) if cells <= 1 << 16 else key, kind="stable")
     # coordinate rows first, then one gather along them: gathering (N, 3) rows of a strided
     # scan view and transposing costs several times more
     rows = np.ascontiguousarray(xyz.T, dtype=np.float32).take(
         perm if sel is None else sel[perm], axis=1
     )
-    firsts = np.zeros(nx * ny + 1, np.int64)
-    np.cumsum(np.bincount(key, minlength=nx * ny), out=firsts[1:])
-    return _index_of_rows(rows, firsts, nx, ny, gt, ix0, iy0)
+    firsts = np.zeros(cells + 1, np.int64)
+    np.cumsum(np.bincount(key, minlength=cells), out=firsts[1:])
+    return rows, firsts
 
 
 def _index_of_rows(
@@ -286,7 +280,8 @@ def grid_index(xyz: np.ndarray, cell_m: float) -> FrameIndex | None:
     nx, ny = int(ix.max()) - ix0 + 1, int(iy.max()) - iy0 + 1
     if nx * ny > MAX_GRID_CELLS:
         return None
-    return _sorted_index(xyz, None, (ix - ix0) * ny + (iy - iy0), nx, ny, None, ix0, iy0)
+    rows, firsts = _sorted_rows(xyz, None, (ix - ix0) * ny + (iy - iy0), nx * ny)
+    return _index_of_rows(rows, firsts, nx, ny, None, ix0, iy0)
 
 
 class GridStore:
@@ -317,6 +312,25 @@ class GridStore:
     def clear(self) -> None:
         self._grids.clear()
         self.nbytes = 0
+
+
+def _corridor_rows(
+    xyz: np.ndarray, cor: Corridor, bounds: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The numpy build of a corridor's sorted rows (:func:`_sorted_rows`) from a scan's points
+    ``xyz (N, 3)``: ``bounds`` (float32 ``x_lo, x_hi, y_lo, y_hi``) first, then the exact cell
+    and the occupancy on the few points left."""
+    x, y = xyz[:, 0], xyz[:, 1]
+    near = np.flatnonzero((x >= bounds[0]) & (x < bounds[1]) & (y >= bounds[2]) & (y < bounds[3]))
+    xyz = xyz[near]
+    ix, iy = _cells(xyz, cor.cell)
+    ix -= cor.ix0
+    iy -= cor.iy0
+    inside = (ix >= 0) & (ix < cor.nx) & (iy >= 0) & (iy < cor.ny)
+    key = np.where(inside, ix * cor.ny + iy, 0)
+    keep = inside & cor.occupancy.reshape(-1)[key]  # queries never read other cells
+    sel = np.flatnonzero(keep)
+    return _sorted_rows(xyz, sel, key[sel], cor.nx * cor.ny)
 
 
 class TrackletScans:
@@ -408,32 +422,12 @@ class TrackletScans:
             dtype=np.float32,
         )
         kernel = cell_sort_kernel()
-        if kernel is not None:  # the same index in one compiled pass
-            rows, firsts = kernel(
-                np.ascontiguousarray(scan, dtype=np.float32),
-                cor.cell,
-                cor.ix0,
-                cor.iy0,
-                cor.nx,
-                cor.ny,
-                cor.occupancy.reshape(-1),
-                bounds,
-            )
-            return _index_of_rows(rows, firsts, cor.nx, cor.ny, gt, cor.ix0, cor.iy0)
-        xyz = scan[:, :3]
-        x, y = xyz[:, 0], xyz[:, 1]
-        near = np.flatnonzero(
-            (x >= bounds[0]) & (x < bounds[1]) & (y >= bounds[2]) & (y < bounds[3])
-        )
-        xyz = xyz[near]
-        ix, iy = _cells(xyz, cor.cell)
-        ix -= cor.ix0
-        iy -= cor.iy0
-        inside = (ix >= 0) & (ix < cor.nx) & (iy >= 0) & (iy < cor.ny)
-        key = np.where(inside, ix * cor.ny + iy, 0)
-        keep = inside & cor.occupancy.reshape(-1)[key]  # queries never read other cells
-        sel = np.flatnonzero(keep)
-        return _sorted_index(xyz, sel, key[sel], cor.nx, cor.ny, gt, cor.ix0, cor.iy0)
+        if kernel is not None:  # the same rows in one compiled pass
+            grid = (cor.cell, cor.ix0, cor.iy0, cor.nx, cor.ny, cor.occupancy.reshape(-1))
+            rows, firsts = kernel(np.ascontiguousarray(scan, dtype=np.float32), *grid, bounds)
+        else:
+            rows, firsts = _corridor_rows(scan[:, :3], cor, bounds)
+        return _index_of_rows(rows, firsts, cor.nx, cor.ny, gt, cor.ix0, cor.iy0)
 
     def _direct_crop(self, t: int, box: np.ndarray, scale: float, offset_m: float) -> np.ndarray:
         return crop_canonical(self.scan(t)[:, :3], box, scale, offset_m, self.cell)

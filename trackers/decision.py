@@ -378,7 +378,8 @@ def _crops_and_nearest(
     point. On CPU with the ``fast`` extra one compiled pass
     (:func:`trackers.kernels.crop_nearest_kernel`, the same bits)."""
     kernel = kernels.crop_nearest_kernel() if kernels.compilable(points, first) else None
-    if kernel is not None and boxes.dtype == points.dtype:  # the caller's boxes are detached
+    # no autograd here: the caller's boxes are detached (the choice is not differentiated)
+    if kernel is not None and boxes.dtype == points.dtype:
         c = len(boxes)
         in_crop = torch.empty(c, len(points), dtype=torch.bool)
         sq_near, sq_first = points.new_empty(c, len(points)), points.new_empty(c, len(first))

@@ -127,11 +127,10 @@ class VotingHead(nn.Module):
             z.reshape(b * m, -1).index_select(0, seeds)[None],
         )
         centres = vote_xyz[0, len(point) :, None]  # (B, 1, 3)
-        w, _ = self.aggregate.linear_params(0)
         cluster = grouped_max(
             self.aggregate,
             per_vote[:, : len(point)],
-            centres @ w[:, :3].t(),
+            self._per_centre(centres),
             group,
             torch.arange(len(point), device=point.device),
         )
@@ -159,8 +158,7 @@ class VotingHead(nn.Module):
     ) -> torch.Tensor:
         """The raw outputs ``(B, P, 5)`` (centre offset, yaw, objectness logit) of the clusters
         of votes around ``centres (B, P, 3)``."""
-        w, _ = self.aggregate.linear_params(0)
-        per_centre = centres @ w[:, :3].t()
+        per_centre = self._per_centre(centres)
         radius, k = self.config.cluster_radius, self.config.cluster_votes
         if self.training or not self.fast_eval:  # dense: BatchNorm statistics over every slot
             idx = ops.ball_query(radius, k, vote_xyz, centres)  # (B, P, k)
@@ -170,6 +168,12 @@ class VotingHead(nn.Module):
             group, point = ops.ball_query_pairs(radius, k, vote_xyz, centres)
             cluster = grouped_max(self.aggregate, per_vote, per_centre, group, point)
         return self.proposal(cluster)
+
+    def _per_centre(self, centres: torch.Tensor) -> torch.Tensor:
+        """The per-centre term ``W_x c`` of the decomposed first aggregation layer (see
+        :meth:`_votes`), ``(..., 3)`` -> ``(..., V)``."""
+        w, _ = self.aggregate.linear_params(0)
+        return centres @ w[:, :3].t()
 
     def _radians(self, box_raw: torch.Tensor) -> torch.Tensor:
         """``(..., 4)`` boxes with the yaw in ``yaw_unit`` -> in radians."""

@@ -1,8 +1,9 @@
 """Compiled CPU kernels for :mod:`trackers.ops` (numba, the ``fast`` extra).
 
 Each getter (:func:`hash_kernel`, :func:`fps_kernel`, :func:`ball_kernel`, :func:`knn_kernel`,
-:func:`distinct_kernel`, :func:`nearest_kernel`) compiles its kernel on first use (cached on
-disk by numba) and returns it, or ``None`` without numba: the ops then run their torch paths.
+:func:`distinct_kernel`, :func:`nearest_kernel`, :func:`crop_nearest_kernel`; built with
+:func:`envs.kernels.compiled`) compiles its kernel on first use (cached on disk by numba) and
+returns it, or ``None`` without numba: the ops then run their torch paths.
 Every kernel computes what its torch path computes, the float operations in the same order
 (squared distances as ``pairwise_sqdist``: ``(dx^2 + dy^2) + dz^2`` in the points' dtype), so
 the results are the same bit for bit (tested against the torch paths in ``tests/test_ops.py``).
@@ -21,6 +22,7 @@ from envs.kernels import compiled
 __all__ = [
     "ball_kernel",
     "compilable",
+    "crop_nearest_kernel",
     "distinct_kernel",
     "fps_kernel",
     "hash_kernel",
