@@ -25,19 +25,9 @@ CHECKPOINT_NAMES = tuple(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
-    parser.add_argument(
-        "--preset",
-        default="small",
-        help="synthetic preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
-    )
-    parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
-    parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    parser.add_argument(
-        "--split",
-        default="test",
-        choices=("train", "val", "test", "all"),
-        help="which scenes are evaluated",
-    )
+    from training.commands.eval import add_world_arguments
+
+    add_world_arguments(parser, "which scenes are evaluated")
     parser.add_argument(
         "--setting",
         default="kitti-1",

@@ -133,8 +133,24 @@ def add_nuscenes_frame_argument(
     )
 
 
+def add_world_arguments(parser: argparse.ArgumentParser, split_help: str) -> None:
+    """``--preset``, ``--sensor``, ``--seed`` (the synthetic world) and ``--split`` (help
+    ``split_help``): the world flags of `eval` (and `render`, through :func:`add_env_arguments`)
+    and `demo`."""
+    parser.add_argument(
+        "--preset",
+        default="small",
+        help="synthetic preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
+    )
+    parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
+    parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
+    parser.add_argument(
+        "--split", default="test", choices=("train", "val", "test", "all"), help=split_help
+    )
+
+
 def add_env_arguments(parser: argparse.ArgumentParser) -> None:
-    """The dataset / env flags shared by `eval` and `demo`."""
+    """The dataset / env flags of `eval` and `render`."""
     parser.add_argument(
         "--dataset",
         choices=("synthetic", "kitti", "nuscenes"),
@@ -156,19 +172,7 @@ def add_env_arguments(parser: argparse.ArgumentParser) -> None:
         "v1.0-mini); --split train/val/test read train_track/train_detect/val",
     )
     add_nuscenes_frame_argument(parser)
-    parser.add_argument(
-        "--preset",
-        default="small",
-        help="synthetic preset (tiny, small, default; KITTI motion: tiny-km, small-km, default-km)",
-    )
-    parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (hdl64, hdl32)")
-    parser.add_argument("--seed", type=int, default=0, help="synthetic world seed")
-    parser.add_argument(
-        "--split",
-        default="test",
-        choices=("train", "val", "test", "all"),
-        help="scenes: train 0-16, val 17-18, test 19-20 (KITTI's split)",
-    )
+    add_world_arguments(parser, "scenes: train 0-16, val 17-18, test 19-20 (KITTI's split)")
     parser.add_argument(
         "--allow-missing-scenes",
         action="store_true",
