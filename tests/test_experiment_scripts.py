@@ -349,6 +349,27 @@ def test_hold_variants_change_only_the_still_target_test(tmp_path):
         script.main([str(run), "--holds", "0", "--out", str(tmp_path / "x")])
 
 
+def test_still_moving_splits_tracklets_by_previous_box_and_weights_by_frames():
+    still_moving = _script("still_moving")
+
+    def row(name, scores):  # tracklet -> (Success, frames)
+        per = {k: {"success": s, "frames": f} for k, (s, f) in scores.items()}
+        return {"candidate": name, "per_tracklet": per}
+
+    ranking = [
+        row("a.safetensors", {"t0": (50.0, 10), "t1": (90.0, 30), "t2": (20.0, 20)}),
+        row("previous_box", {"t0": (100.0, 10), "t1": (80.0, 30), "t2": (10.0, 20)}),
+    ]
+    out = still_moving.split_scores(ranking, still=80.0)
+    assert out["still"]["tracklets"] == 2 and out["still"]["frames"] == 40
+    assert out["still"]["a.safetensors"] == pytest.approx((50 * 10 + 90 * 30) / 40)
+    assert out["still"]["previous_box"] == pytest.approx((100 * 10 + 80 * 30) / 40)
+    assert out["moving"]["tracklets"] == 1
+    assert out["moving"]["a.safetensors"] == pytest.approx(20.0)
+    with pytest.raises(SystemExit, match="previous_box"):
+        still_moving.split_scores(ranking[:1], still=80.0)
+
+
 def test_table4_names_a_folder_without_one_report(tmp_path):
     script = _script("table4")
     (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)
