@@ -370,6 +370,25 @@ def test_still_moving_splits_tracklets_by_previous_box_and_weights_by_frames():
         still_moving.split_scores(ranking[:1], still=80.0)
 
 
+def test_still_test_variants_hold_sparse_crops_and_put_the_first_crop_back():
+    from trackers import decision
+
+    variants = _script("still_test_variants")
+    gen = torch.Generator().manual_seed(0)
+    size = torch.tensor([4.0, 2.0, 1.5])
+    target = (torch.rand(64, 3, generator=gen) - 0.5) * size * 0.8 + torch.tensor([0, 0, 0.2])
+    search = torch.cat([target, torch.zeros(64, 3)])  # zero rows pad the search
+    crops = torch.stack([target[:32].repeat(8, 1), target[32:].repeat(8, 1)])  # (2, 256, 3)
+    scene = decision.Scene(search, size, crops)
+    first = scene.first
+    held = variants._still_variant("previous")(scene, 0.5)
+    assert scene.first is first  # the re-ranking after the test reads the real first crop
+    assert bool(held) == bool(decision._still(decision.Scene(search, size, crops[[1, 1]]), 0.5))
+    sparse = decision.Scene(search[:3].clone(), size, crops)  # 3 points: too few to decide
+    assert not bool(decision._still(sparse, 0.5))
+    assert bool(variants._still_variant("sparse")(sparse, 0.5))
+
+
 def test_table4_names_a_folder_without_one_report(tmp_path):
     script = _script("table4")
     (tmp_path / "test" / "p2b-none-s0").mkdir(parents=True)
