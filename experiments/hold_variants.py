@@ -1,11 +1,15 @@
-"""Write a training run's validated weights as tracker files with other still-target tests.
+"""Write a training run's validated weights as tracker files with other still-target tests
+(and dead zones).
 
-``RUN/best.pt`` with ``hold_chamfer_m`` set to each given value (inference only: the weights and
-every other setting are those of the run), as ``OUT/RUN-hVALUE.safetensors``, for
-``pointtrack select`` to rank beside the run itself (docs/table4.md, "Still-target test").
-Existing files are kept (a rerun after a kill redoes only what is missing).
+``RUN/best.pt`` with ``hold_chamfer_m`` set to each given value and, with ``--min-motions``,
+``min_motion_m`` to each of those (every pair; inference only: the weights and every other
+setting are those of the run), as ``OUT/RUN-hHOLD.safetensors`` (``OUT/RUN-hHOLD-mMIN.safetensors``
+with a dead zone), for ``pointtrack select`` to rank beside the run itself (docs/table4.md,
+"Still-target test", "Budget pilot"). Existing files are kept (a rerun after a kill redoes only
+what is missing).
 
     python experiments/hold_variants.py RUN [RUN ...] --holds 0.15 0.3 0.6 --out DIR
+    python experiments/hold_variants.py RUN --holds 0 2.5 --min-motions 0.5 1 --out DIR
 """
 
 from __future__ import annotations
@@ -19,34 +23,46 @@ import trackers
 from training.loading import load_tracker
 
 
-def write_variants(run: Path, holds: list[float], out: Path) -> list[Path]:
-    """The files of ``run``'s ``best.pt`` with each hold in ``holds``; returns their paths."""
+def write_variants(
+    run: Path, holds: list[float], out: Path, min_motions: list[float] = (0.0,)
+) -> list[Path]:
+    """The files of ``run``'s ``best.pt`` with each hold in ``holds`` and each dead zone in
+    ``min_motions`` (metres; 0: none); returns their paths, holds outer."""
     paths = []
     tracker = None
     for hold in holds:
-        path = out / f"{run.name}-h{hold:g}.safetensors"
-        paths.append(path)
-        if path.is_file():
-            continue
-        tracker = tracker or load_tracker(str(run / "best.pt"))
-        tracker.inference = dataclasses.replace(tracker.inference, hold_chamfer_m=hold)
-        trackers.save(tracker, path)
+        for min_motion in min_motions:
+            dead_zone = f"-m{min_motion:g}" if min_motion > 0 else ""
+            path = out / f"{run.name}-h{hold:g}{dead_zone}.safetensors"
+            paths.append(path)
+            if path.is_file():
+                continue
+            tracker = tracker or load_tracker(str(run / "best.pt"))
+            tracker.inference = dataclasses.replace(
+                tracker.inference, hold_chamfer_m=hold, min_motion_m=min_motion
+            )
+            trackers.save(tracker, path)
     return paths
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path, help="training run folders (RUN/best.pt)")
-    parser.add_argument("--holds", nargs="+", type=float, required=True, help="metres, > 0")
+    parser.add_argument("--holds", nargs="+", type=float, required=True, help="metres, >= 0")
+    parser.add_argument(
+        "--min-motions", nargs="+", type=float, default=[0.0], help="dead zones, metres, >= 0"
+    )
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
-    if any(hold <= 0 for hold in args.holds):
-        parser.error(f"--holds must be > 0 (the run itself is the 0 candidate), got {args.holds}")
+    if any(v < 0 for v in (*args.holds, *args.min_motions)):
+        parser.error(f"--holds {args.holds} and --min-motions {args.min_motions} must be >= 0")
+    if 0 in args.holds and 0 in args.min_motions:
+        parser.error("hold 0 with min-motion 0 is the run itself (rank its best.pt instead)")
     args.out.mkdir(parents=True, exist_ok=True)
     for run in args.runs:
         if not (run / "best.pt").is_file():
             parser.error(f"{run}: no best.pt (training not finished?)")
-        for path in write_variants(run, args.holds, args.out):
+        for path in write_variants(run, args.holds, args.out, args.min_motions):
             print(path)
     return 0
 

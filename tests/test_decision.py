@@ -6,6 +6,7 @@ moved out of ``trackers/base.py`` (``tests/data/decisions.npz``,
 from __future__ import annotations
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -161,6 +162,16 @@ def test_decide_keeps_clips_and_takes_a_given_action():
     got = decide(tracker, batch, outputs, tracker.inference, action=given, max_action=[0.5] * 4)
     np.testing.assert_array_equal(got[0].numpy(), np.float32([0.5, 0, 0, 0]))
     assert torch.isnan(got[1, 0]) and not got[2].any()  # non-finite: NaN, for the caller
+    # the dead zone: a move shorter than min_motion_m keeps the box (its yaw too)
+    dead_zone = InferenceConfig(min_motion_m=0.5)
+    given = torch.tensor([[0.3, 0.39, 0.0, 0.5], [0.3, 0.4, 0.0, 0.5], [0.1, 0, 0, 0]])
+    got = decide(tracker, batch, outputs, dead_zone, action=given)
+    assert not got[0].any()  # |(0.3, 0.39, 0)| < 0.5
+    np.testing.assert_array_equal(got[1].numpy(), np.float32([0.3, 0.4, 0.0, 0.5]))  # = 0.5
+    given = torch.tensor([[math.nan, 0, 0, 0]] * 3)
+    assert torch.isnan(decide(tracker, batch, outputs, dead_zone, action=given)[0, 0])
+    chosen = decide(tracker, batch, outputs, dead_zone)  # the network's (9, -9) move, clipped
+    np.testing.assert_array_equal(chosen[0].numpy(), np.float32([5, -5, 0.5, np.pi]))
 
 
 def _still_target_observation(seed=0, shift_m=0.0):
@@ -370,6 +381,8 @@ def test_inference_config_checks_its_fields():
         ("rerank_margin_m", -0.1),
         ("rerank_margin_m", float("nan")),
         ("rerank_margin_m", None),
+        ("min_motion_m", -0.5),
+        ("min_motion_m", float("inf")),
     ):
         with pytest.raises(ValueError, match=f"InferenceConfig.{field} = {re.escape(repr(bad))}"):
             InferenceConfig(**{field: bad})
@@ -377,6 +390,7 @@ def test_inference_config_checks_its_fields():
         "hold_chamfer_m": 1.0,
         "rerank_top_k": 8,
         "rerank_margin_m": 0.0,
+        "min_motion_m": 0.0,
     }
     with pytest.raises(ValueError, match=r"here: unknown field\(s\) \['hold'\]"):
         InferenceConfig.from_dict({"hold": 0.1}, where="here")

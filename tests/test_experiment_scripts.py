@@ -347,6 +347,14 @@ def test_hold_variants_change_only_the_still_target_test(tmp_path):
     assert paths[0].stat().st_mtime_ns == stamp
     with pytest.raises(SystemExit):
         script.main([str(run), "--holds", "0", "--out", str(tmp_path / "x")])
+    zones = script.write_variants(run, [0.0, 2.5], tmp_path / "zone", min_motions=[1.0])
+    assert [p.name for p in zones] == [
+        "p2b-none-s0-h0-m1.safetensors",
+        "p2b-none-s0-h2.5-m1.safetensors",
+    ]
+    for path, hold in zip(zones, (0.0, 2.5), strict=True):
+        inference = trackers.load(path).inference
+        assert (inference.hold_chamfer_m, inference.min_motion_m) == (hold, 1.0)
 
 
 def test_still_moving_splits_tracklets_by_previous_box_and_weights_by_frames():

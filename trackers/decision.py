@@ -14,6 +14,11 @@ decided here, by settings that act at inference only and are no part of the arch
   to the first frame's crop, a proposal counting ``rerank_margin_m`` farther than it is: the
   network moves the box only where the move matches the target better. Not in the papers
   either (docs/notes/checkpoints-history.md, "Re-ranking by the first crop");
+* the **dead zone** (``min_motion_m > 0``, :func:`decide`): an action whose translation is
+  shorter than ``min_motion_m`` metres keeps the box: at a low frame rate (nuScenes' 2 Hz key
+  frames) a target stands or moves far, and a short move is mostly the network's jitter, which
+  walks a parked target's box away frame by frame. Not in the papers either (docs/table4.md,
+  "Budget pilot");
 * the **clip** to ``max_action`` (:func:`clip_action`).
 
 :func:`decide` is the one place these run, in this order: ``Tracker.act`` and the RL policy
@@ -76,17 +81,20 @@ class InferenceConfig:
 
     ``hold_chamfer_m``: the still-target test's distance (metres, finite, >= 0);
     ``rerank_top_k``: how many best-scored proposals the re-ranking weighs (an integer >= 0);
-    ``rerank_margin_m``: how much farther a proposal's crop counts than it is (metres, >= 0).
+    ``rerank_margin_m``: how much farther a proposal's crop counts than it is (metres, >= 0);
+    ``min_motion_m``: the dead zone, the shortest move executed (metres, >= 0; 0: off).
     """
 
     hold_chamfer_m: float = 0.0
     rerank_top_k: int = 0
     rerank_margin_m: float = 0.0
+    min_motion_m: float = 0.0
 
     def __post_init__(self) -> None:
         for name, meaning in (
             ("hold_chamfer_m", "metres; 0 turns the still-target test off"),
             ("rerank_margin_m", "metres"),
+            ("min_motion_m", "metres; 0 turns the dead zone off"),
         ):
             value = getattr(self, name)
             real = isinstance(value, numbers.Real) and not isinstance(value, bool)
@@ -420,9 +428,10 @@ def decide(
     (B,)`` bool gives it where it is known already: ``act`` tests it before the network, to skip
     the network there); elsewhere ``action (B, 4)`` if given (the RL policy's soft mode), else
     :func:`choose_action`; then the one clip to ``max_action`` (default
-    ``tracker.max_action``). A non-finite action comes out NaN (the caller decides: ``act``
-    moves nowhere, the RL policy raises). ``observed``: the batch's :func:`scenes`, if built
-    already. Differentiable in the chosen action."""
+    ``tracker.max_action``). With ``inference.min_motion_m > 0`` an action whose translation is
+    shorter keeps the box too (the dead zone). A non-finite action comes out NaN (the caller
+    decides: ``act`` moves nowhere, the RL policy raises). ``observed``: the batch's
+    :func:`scenes`, if built already. Differentiable in the chosen action."""
     max_action = tracker.max_action if max_action is None else max_action
     if observed is None and (inference.hold_chamfer_m > 0 or inference.rerank_top_k > 0):
         observed = scenes(tracker, batch)  # what the test and the re-ranking share
@@ -431,5 +440,7 @@ def decide(
     if action is None:
         action = choose_action(tracker, batch, outputs, inference, max_action, observed)
     action = torch.where(torch.isfinite(action), action, math.nan)
+    if inference.min_motion_m > 0:  # the dead zone (NaN compares False: it stays NaN)
+        keep = keep | (torch.linalg.vector_norm(action[:, :3], dim=1) < inference.min_motion_m)
     action = torch.where(keep[:, None], torch.zeros_like(action), action)
     return clip_action(action, max_action)
