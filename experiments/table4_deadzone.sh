@@ -18,10 +18,10 @@ cell() {  # N ARM NAME
   local sources=("$root/p2b-$arm-s0" "$root/p2b-$arm-s1" "$root/p2b-$arm-s2")
   if [ "$arm" = none ]; then sources+=("$runs/table4-budget-nus$1-scene/p2b-none-s0"); fi
   local candidates=()
-  mkdir -p "$root/deadzone" "$root/logs"
-  for source in "${sources[@]}"; do
+  mkdir -p "$root/logs"
+  for source in "${sources[@]}"; do  # beside each run: the budget run's has a pilot run's name
     mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
-      "$source" --holds 0 2.5 --min-motions 0.5 1 2 --out "$root/deadzone")
+      "$source" --holds 0 2.5 --min-motions 0.5 1 2 --out "$(dirname "$source")/deadzone")
   done
   if [ ! -e "$out/selection.json" ]; then
     pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \
