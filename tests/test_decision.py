@@ -402,6 +402,8 @@ def test_inference_config_checks_its_fields():
         tiny("p2b").inference = {"hold_chamfer_m": 0.1}
     with pytest.raises(ValueError, match="m2track: the still-target test"):
         trackers.make("m2track").inference = InferenceConfig(rerank_top_k=2)
+    with pytest.raises(ValueError, match="the dead zone are for matching trackers"):
+        trackers.make("m2track").inference = InferenceConfig(min_motion_m=1.0)
     tracker = tiny("bat")
     tracker.inference = InferenceConfig(hold_chamfer_m=0.1)
     tracker.env_options = {"template_mode": "first_and_previous_merged"}

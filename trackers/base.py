@@ -263,9 +263,9 @@ class Tracker(nn.Module):
             )
         if config != InferenceConfig() and not self.supports_inference:
             raise ValueError(
-                f"{self.name}: the still-target test and the re-ranking need a matching "
-                f"tracker's observations and proposals; this tracker takes only the default "
-                f"InferenceConfig(), got {config}"
+                f"{self.name}: the still-target test, the re-ranking and the dead zone are "
+                f"for matching trackers' observations and proposals; this tracker takes only "
+                f"the default InferenceConfig(), got {config}"
             )
         self._inference = config
 
