@@ -9,7 +9,8 @@ with a dead zone), for ``pointtrack select`` to rank beside the run itself (docs
 what is missing).
 
     python experiments/hold_variants.py RUN [RUN ...] --holds 0.15 0.3 0.6 --out DIR
-    python experiments/hold_variants.py RUN --holds 0 2.5 --min-motions 0.5 1 --out DIR
+    python experiments/hold_variants.py RUN --holds 0 2.5 --min-motions 0.5 1 --out DIR \
+        [--prefix budget-]
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 
 import trackers
@@ -24,16 +26,21 @@ from training.loading import load_tracker
 
 
 def write_variants(
-    run: Path, holds: list[float], out: Path, min_motions: list[float] = (0.0,)
+    run: Path,
+    holds: Sequence[float],
+    out: Path,
+    min_motions: Sequence[float] = (0.0,),
+    prefix: str = "",
 ) -> list[Path]:
     """The files of ``run``'s ``best.pt`` with each hold in ``holds`` and each dead zone in
-    ``min_motions`` (metres; 0: none); returns their paths, holds outer."""
+    ``min_motions`` (metres; 0: none), named ``PREFIX RUN-h...``; returns their paths, holds
+    outer."""
     paths = []
     tracker = None
     for hold in holds:
         for min_motion in min_motions:
             dead_zone = f"-m{min_motion:g}" if min_motion > 0 else ""
-            path = out / f"{run.name}-h{hold:g}{dead_zone}.safetensors"
+            path = out / f"{prefix}{run.name}-h{hold:g}{dead_zone}.safetensors"
             paths.append(path)
             if path.is_file():
                 continue
@@ -53,6 +60,12 @@ def main(argv: list[str] | None = None) -> int:
         "--min-motions", nargs="+", type=float, default=[0.0], help="dead zones, metres, >= 0"
     )
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument(
+        "--prefix",
+        default="",
+        help="put before each file's name: runs of the same name in other roots stay apart "
+        "(a test reading is filed under the selected file's name)",
+    )
     args = parser.parse_args(argv)
     if any(v < 0 for v in (*args.holds, *args.min_motions)):
         parser.error(f"--holds {args.holds} and --min-motions {args.min_motions} must be >= 0")
@@ -62,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     for run in args.runs:
         if not (run / "best.pt").is_file():
             parser.error(f"{run}: no best.pt (training not finished?)")
-        for path in write_variants(run, args.holds, args.out, args.min_motions):
+        for path in write_variants(run, args.holds, args.out, args.min_motions, args.prefix):
             print(path)
     return 0
 

@@ -30,13 +30,9 @@ def _still_variant(variant: str):
     library's ``_still(scene, hold_m)``."""
 
     def still(scene: decision.Scene, hold_m: float) -> torch.Tensor:
-        points, layout = scene.points
-        if "sparse" in variant and len(points):
-            in_crop = decision._crop_mask(points[None], scene.size[None])[0]
-            in_box = in_crop.gather(0, layout.clamp(max=len(points) - 1)) & scene.real
-            enough = in_box.sum() >= decision.HOLD_MIN_POINTS
-            if not bool(enough & (scene.crop_masks.sum(1) >= decision.HOLD_MIN_POINTS).all()):
-                return torch.ones((), dtype=torch.bool, device=points.device)
+        points, _ = scene.points
+        if "sparse" in variant and len(points) and not bool(decision._reference_crop(scene)[2]):
+            return torch.ones((), dtype=torch.bool, device=points.device)
         if "previous" not in variant:
             return LIBRARY_STILL(scene, hold_m)
         first = scene.first  # the re-ranking reads it after this test: put back

@@ -19,9 +19,13 @@ cell() {  # N ARM NAME
   if [ "$arm" = none ]; then sources+=("$runs/table4-budget-nus$1-scene/p2b-none-s0"); fi
   local candidates=()
   mkdir -p "$root/logs"
-  for source in "${sources[@]}"; do  # beside each run: the budget run's has a pilot run's name
+  for source in "${sources[@]}"; do  # the budget run has a pilot run's name: prefixed, since
+    # the test reading is filed under the selected file's name (experiments/table4_ship.py)
+    local prefix=""
+    case $source in */table4-budget-*) prefix=budget- ;; esac
     mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
-      "$source" --holds 0 2.5 --min-motions 0.5 1 2 --out "$(dirname "$source")/deadzone")
+      "$source" --holds 0 2.5 --min-motions 0.5 1 2 --out "$(dirname "$source")/deadzone" \
+      --prefix "$prefix")
   done
   if [ ! -e "$out/selection.json" ]; then
     pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \

@@ -355,6 +355,8 @@ def test_hold_variants_change_only_the_still_target_test(tmp_path):
     for path, hold in zip(zones, (0.0, 2.5), strict=True):
         inference = trackers.load(path).inference
         assert (inference.hold_chamfer_m, inference.min_motion_m) == (hold, 1.0)
+    other = script.write_variants(run, [2.5], tmp_path / "zone", [1.0], prefix="budget-")
+    assert [p.name for p in other] == ["budget-p2b-none-s0-h2.5-m1.safetensors"]
 
 
 def test_still_moving_splits_tracklets_by_previous_box_and_weights_by_frames():

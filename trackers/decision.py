@@ -247,6 +247,17 @@ def keeps_box(
     return keep | torch.stack([_still(scene, inference.hold_chamfer_m) for scene in observed])
 
 
+def _reference_crop(scene: Scene) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The reference box's crop of a non-empty search: ``in_crop (1, U)`` over the distinct
+    points, ``in_box (N,)`` over the search's rows, and whether it and both template crops hold
+    :data:`HOLD_MIN_POINTS` points (a bool scalar: the still-target test decides only then)."""
+    points, layout = scene.points
+    in_crop = _crop_mask(points[None], scene.size[None])
+    in_box = in_crop[0].gather(0, layout.clamp(max=len(points) - 1)) & scene.real
+    enough = (in_box.sum() >= HOLD_MIN_POINTS) & (scene.crop_masks.sum(1) >= HOLD_MIN_POINTS).all()
+    return in_crop, in_box, enough
+
+
 def _still(scene: Scene, hold_m: float) -> torch.Tensor:
     """The still-target test of one observation -> a bool scalar: the reference box's crop
     against both template crops, in one pass."""
@@ -254,9 +265,7 @@ def _still(scene: Scene, hold_m: float) -> torch.Tensor:
     masks = scene.crop_masks
     if not len(points):  # an empty search
         return torch.zeros((), dtype=torch.bool, device=points.device)
-    in_crop = _crop_mask(points[None], scene.size[None])  # (1, U): the reference box's crop
-    in_box = in_crop[0].gather(0, layout.clamp(max=len(points) - 1)) & scene.real
-    enough = (in_box.sum() >= HOLD_MIN_POINTS) & (masks.sum(1) >= HOLD_MIN_POINTS).all()
+    in_crop, in_box, enough = _reference_crop(scene)
     if not bool(enough):
         return enough
     (first, first_layout), (previous, previous_layout) = scene.first, scene.previous
