@@ -29,10 +29,15 @@ from training.samples import load_tracklets  # noqa: E402
 
 
 def outside(
-    centres: np.ndarray, yaw: np.ndarray, length: np.ndarray, width: np.ndarray
+    centres: np.ndarray,
+    yaw: np.ndarray,
+    length: np.ndarray,
+    width: np.ndarray,
+    enlargement: tuple[float, float] = SEARCH_ENLARGEMENT,
 ) -> np.ndarray:
-    """``(T - 1,)`` True where centre ``t + 1`` ``(T, 2)`` lies outside the crop of box ``t``."""
-    scale, offset = SEARCH_ENLARGEMENT
+    """``(T - 1,)`` True where centre ``t + 1`` ``(T, 2)`` lies outside the crop of box ``t``
+    enlarged by ``(scale, offset_m)``."""
+    scale, offset = enlargement
     d = centres[1:] - centres[:-1]
     c, s = np.cos(-yaw[:-1]), np.sin(-yaw[:-1])
     along, across = c * d[:, 0] - s * d[:, 1], s * d[:, 0] + c * d[:, 1]
@@ -56,9 +61,13 @@ def _per_category(tracklets, pair_flags) -> dict[str, list[np.ndarray]]:
     return flags
 
 
-def crop_exits(tracklets) -> dict[str, list[np.ndarray]]:
+def crop_exits(
+    tracklets, enlargement: tuple[float, float] = SEARCH_ENLARGEMENT
+) -> dict[str, list[np.ndarray]]:
     """Per category, the outside flags of every tracklet."""
-    return _per_category(tracklets, lambda b: outside(b[:, :2], b[:, 6], b[:, 3], b[:, 4]))
+    return _per_category(
+        tracklets, lambda b: outside(b[:, :2], b[:, 6], b[:, 3], b[:, 4], enlargement)
+    )
 
 
 def still_pairs(tracklets) -> dict[str, list[np.ndarray]]:
@@ -85,7 +94,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--with-unseen", action="store_true", help="the setting's unseen categories too"
     )
+    parser.add_argument(
+        "--enlargement",
+        nargs=2,
+        type=float,
+        action="append",
+        metavar=("SCALE", "OFFSET_M"),
+        help="a search region to test (repeatable; default the env's 1.25 2)",
+    )
     args = parser.parse_args(argv)
+    enlargements = [tuple(e) for e in args.enlargement or [SEARCH_ENLARGEMENT]]
     sensor = args.sensor or ("hdl32" if args.dataset == "nuscenes" else "hdl64")
     frames = ("lidar", "scene") if args.dataset == "nuscenes" else ("lidar",)
     for frame in frames:
@@ -103,7 +121,9 @@ def main(argv: list[str] | None = None) -> int:
             which = "all" if args.with_unseen else "observed"
             print(f"{root}, {args.split}, {args.setting} {which}")
         where = {"lidar": "LiDAR frame (the default)", "scene": "scene frame (ego motion removed)"}
-        print(f"  {where[frame]}, outside the search crop: {summary(crop_exits(tracklets))}")
+        for scale, offset in enlargements:
+            exits = summary(crop_exits(tracklets, (scale, offset)))
+            print(f"  {where[frame]}, outside the search crop x{scale:g} + {offset:g} m: {exits}")
         print(f"  {where[frame]}, still (< {STILL_M} m): {summary(still_pairs(tracklets))}")
     return 0
 

@@ -440,6 +440,9 @@ def test_search_coverage_flags_centres_outside_the_previous_crop():
     yaw = np.full(4, np.pi / 2)
     flags = script.outside(centres, yaw, np.full(4, 4.0), np.full(4, 2.0))
     assert flags.tolist() == [False, True, False]
+    # + 3 m a side: 5.5 m along, 4.25 across
+    wide = script.outside(centres, yaw, np.full(4, 4.0), np.full(4, 2.0), (1.25, 3.0))
+    assert wide.tolist() == [False, False, False]
     boxes = np.zeros((4, 7))
     boxes[:, :2] = centres
     boxes[3, 0] += 0.09  # under STILL_M (0.1 m)

@@ -18,7 +18,7 @@ from test_pretrain_support import FakeScans, TinyTracker, fake_tracklets
 
 import trackers
 from envs.data import Tracklet
-from envs.geometry import points_in_box, wrap_yaw
+from envs.geometry import boxes_in_frame, points_in_box, wrap_yaw
 from envs.observation import crop_box_frame
 from envs.tracking_env import TrackingEnv
 from training.checkpoint import CheckpointError, check_resumable
@@ -541,3 +541,43 @@ def test_checkpoint_trackers_are_rebuilt_with_their_recipe():
     old = {k: v for k, v in v2.items() if k != "recipe" and k not in RECIPES["v2"]}
     assert "sampling" not in checkpoint_tracker_kwargs(old)["backbone"]  # a v1 run
     assert checkpoint_tracker_kwargs({**old, "future_key": 1}) == checkpoint_tracker_kwargs(old)
+
+
+# ---------------------------------------------------------------- the search region
+
+
+def test_search_center_previous_keeps_the_targets_move_in_the_sample():
+    kwargs = dict(candidates_per_frame=2, zero_offset_candidate=True, seed=1)
+    tracklets = fake_tracklets(n=2, frames=5)
+    current = TrackingSamples(tracklets, **kwargs)
+    previous = TrackingSamples(tracklets, search_center="previous", **kwargs)
+    for i in range(len(previous)):
+        k, t, cand = previous.locate(i)
+        if cand:
+            continue
+        boxes = tracklets[k].boxes
+        # candidate 0's crop is cut around the exact previous box: the GT sits at the move
+        expected = boxes_in_frame(boxes[t], boxes[t - 1])
+        np.testing.assert_allclose(previous[i]["search_box"].numpy(), expected, atol=1e-5)
+        assert np.linalg.norm(expected[:2]) > 0.3  # the fake targets move 0.41 m a frame
+        np.testing.assert_allclose(current[i]["search_box"].numpy()[[0, 1, 6]], 0.0, atol=1e-6)
+    with pytest.raises(ValueError, match="search_center"):
+        TrackingSamples(tracklets, search_center="next")
+
+
+def test_search_region_flags_reach_the_samples_and_the_tracker_file_options():
+    cfg = config_from_dict({"search_offset_m": 4.0, "search_center": "previous"})
+    assert cfg.search_enlargement() == (1.25, 4.0)
+    assert cfg.env_options()["search_enlargement"] == (1.25, 4.0)
+    assert config_from_dict(
+        {"tracker": "gpt", "recipe": "v2", "search_scale": 1.5}
+    ).search_enlargement() == (1.5, 4.0)
+    for bad, key in (
+        ({"search_offset_m": -1.0}, "search_offset_m"),
+        ({"search_scale": 0.0}, "search_scale"),
+        ({"search_center": "next"}, "search_center"),
+        ({"tracker": "m2track", "search_offset_m": 3.0}, "search_offset_m"),
+        ({"tracker": "mbptrack", "search_center": "previous"}, "search_center"),
+    ):
+        with pytest.raises(ConfigError, match=key):
+            config_from_dict(bad)

@@ -97,6 +97,7 @@ edge, no scaling), used for GPT when ``gpt_search_region`` is on."""
 # Values of keys a training checkpoint written before the key existed ran with (not the
 # current default): runs before recipe v2 are v1 runs.
 LEGACY_DEFAULTS: dict[str, Any] = {"recipe": "v1"}
+SEARCH_CENTERS = ("current", "previous")  # training.samples.SEARCH_CENTERS (no torch here)
 DRCT_VARIANTS = ("asymmetric", "siamese")  # training.drct.DRCT_VARIANTS (no torch import here)
 
 
@@ -152,6 +153,14 @@ class TrainConfig:
     bat_fps: bool | None = None  # BAT's backbone samples by farthest-point sampling
     init: str | None = None  # default (torch's) | kaiming (kaiming-normal weights)
     gpt_search_region: bool | None = None  # GPT crops its search region by +4 m, no x1.25
+    # the search region, in training, the val env and the tracker file's env options: the
+    # previous box scaled by search_scale plus search_offset_m a side (null: the tracker's and
+    # recipe's, 1.25 and 2 m); training cuts it around the Gaussian-perturbed current box
+    # (search_center=current, P2B's) or previous box (previous: the target's own move between
+    # the frames stays in the sample, as in tracking; for frames far apart, nuScenes' 2 Hz)
+    search_scale: float | None = None
+    search_offset_m: float | None = None
+    search_center: str = "current"
     # optimisation
     epochs: int = 36
     batch_size: int = 48
@@ -295,6 +304,7 @@ class TrainConfig:
             bad("adam_beta1", "must be in [0, 1) or null")
         if self.adam_eps is not None and not self.adam_eps > 0:
             bad("adam_eps", "must be > 0 or null")
+        self._validate_search(bad)
         if self.drct_variant not in DRCT_VARIANTS:
             bad("drct_variant", f"must be one of {', '.join(DRCT_VARIANTS)}")
         if self.tracker in learned and not _drct_trainable(trackers.tracker_class(self.tracker)):
@@ -330,6 +340,22 @@ class TrainConfig:
             raise ConfigError("invalid training config: " + "; ".join(errors))
         return self
 
+    def _validate_search(self, bad) -> None:
+        if self.search_scale is not None and not self.search_scale > 0:
+            bad("search_scale", "must be > 0 or null")
+        if self.search_offset_m is not None and not self.search_offset_m >= 0:
+            bad("search_offset_m", "must be >= 0 or null")
+        if self.search_center not in SEARCH_CENTERS:
+            bad("search_center", f"must be one of {', '.join(SEARCH_CENTERS)}")
+        if self.tracker not in trackers.available("learned"):
+            return
+        recipe = getattr(trackers.tracker_class(self.tracker), "sample_recipe", None)
+        for key in ("search_scale", "search_offset_m"):
+            if recipe == "motion" and getattr(self, key) is not None:
+                bad(key, f"{self.tracker}'s motion samples have no search region to set")
+        if recipe in ("memory", "motion") and self.search_center != "current":
+            bad("search_center", f"{self.tracker}'s {recipe} samples support current only")
+
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
@@ -345,8 +371,14 @@ class TrainConfig:
     def search_enlargement(self) -> tuple[float, float]:
         """``(scale, offset_m)`` of the search region in training and in the val env."""
         if self.tracker == "gpt" and self.recipe_value("gpt_search_region"):
-            return GPT_SEARCH_ENLARGEMENT
-        return (SEARCH_SCALE, SEARCH_OFFSET_M)
+            scale, offset_m = GPT_SEARCH_ENLARGEMENT
+        else:
+            scale, offset_m = SEARCH_SCALE, SEARCH_OFFSET_M
+        if self.search_scale is not None:
+            scale = float(self.search_scale)
+        if self.search_offset_m is not None:
+            offset_m = float(self.search_offset_m)
+        return (scale, offset_m)
 
     def env_kwargs(self) -> dict[str, Any]:
         """The ``TrackingEnv`` options a tracker trained with this config must be evaluated

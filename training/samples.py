@@ -72,6 +72,7 @@ JITTER_XY_M = 0.3
 JITTER_YAW_RAD = math.radians(1.5)
 SEARCH_SIGMA_XY_M = 1.0
 SEARCH_SIGMA_YAW_RAD = math.radians(math.sqrt(5.0))
+SEARCH_CENTERS = ("current", "previous")
 
 
 def _reach_m(box: np.ndarray, scale: float, offset_m: float) -> float:
@@ -177,6 +178,10 @@ class TrackingSamples(FrameCandidateSamples):
         size_jitter: ``a`` of the object resizing (see the module docstring); 0 turns it off.
         search_enlargement: ``(scale, offset_m)`` of the search crop (the env's
             ``search_enlargement``; default P2B's 1.25 and 2 m).
+        search_center: the box the search crop is cut around, Gaussian-perturbed: ``"current"``
+            (the frame's own, P2B's samples: the target sits near the crop's centre) or
+            ``"previous"`` (the previous frame's, as in tracking: the target's move between the
+            two frames stays in the sample; for frames far apart such as nuScenes' 2 Hz).
 
     Recipe items (docs/recipe.md; the defaults are recipe v1, ``training.config.RECIPES``):
         zero_offset_candidate: candidate 0 of every frame crops its search region around the
@@ -205,6 +210,7 @@ class TrackingSamples(FrameCandidateSamples):
         search_size: int = SEARCH_SIZE,
         size_jitter: float = 0.0,
         search_enlargement: tuple[float, float] = (SEARCH_SCALE, SEARCH_OFFSET_M),
+        search_center: str = "current",
         zero_offset_candidate: bool = False,
         min_crop_points: int = 0,
         template_union: bool = False,
@@ -216,6 +222,10 @@ class TrackingSamples(FrameCandidateSamples):
             raise ValueError(f"size_jitter must be in [0, 1), got {size_jitter}")
         if min_crop_points < 0:
             raise ValueError(f"min_crop_points must be >= 0, got {min_crop_points}")
+        if search_center not in SEARCH_CENTERS:
+            raise ValueError(
+                f"search_center must be one of {SEARCH_CENTERS}, got {search_center!r}"
+            )
         scale, offset_m = (float(v) for v in search_enlargement)
         if not (scale > 0 and offset_m >= 0):
             raise ValueError(
@@ -225,6 +235,7 @@ class TrackingSamples(FrameCandidateSamples):
         self.template_size = template_size
         self.search_size = search_size
         self.search_scale, self.search_offset_m = scale, offset_m
+        self.search_center = search_center
         self.zero_offset_candidate = bool(zero_offset_candidate)
         self.min_crop_points = int(min_crop_points)
         self.template_union = bool(template_union)
@@ -283,11 +294,12 @@ class TrackingSamples(FrameCandidateSamples):
         if cand > 0:
             prev[0:2] += rng.uniform(-JITTER_XY_M, JITTER_XY_M, 2)
             prev[6] += rng.uniform(-JITTER_YAW_RAD, JITTER_YAW_RAD)
-        # search region around the Gaussian-perturbed current GT (exact GT for candidate 0
-        # under zero_offset_candidate, as Open3DSOT's when it has several candidates)
-        ref = gt.copy()
+        # search region around the Gaussian-perturbed current (or previous) GT (exactly that
+        # box for candidate 0 under zero_offset_candidate, as Open3DSOT's when it has several)
+        centre = prev_gt if self.search_center == "previous" else gt
+        ref = centre.copy()
         if not (self.zero_offset_candidate and cand == 0 and self.candidates > 1):
-            ref[0:2] += self._search_offset(gt, rng)
+            ref[0:2] += self._search_offset(centre, rng)
             ref[6] += rng.normal(0.0, SEARCH_SIGMA_YAW_RAD)
         ref[6] = (ref[6] + math.pi) % (2 * math.pi) - math.pi
         prev[6] = (prev[6] + math.pi) % (2 * math.pi) - math.pi

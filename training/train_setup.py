@@ -140,6 +140,7 @@ def default_train_data(cfg: TrainConfig):
         seed=cfg.seed,
         size_jitter=cfg.size_jitter,
         search_enlargement=cfg.search_enlargement(),
+        search_center=cfg.search_center,
         **{k: recipe[k] for k in SAMPLE_RECIPE_KEYS},
     )
     data.root = str(root)  # logged: a synthetic world's folder name carries its generator hash

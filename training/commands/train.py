@@ -116,6 +116,27 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="resize each sample's object by U(1-A, 1+A) per axis (default 0)",
     )
     parser.add_argument(
+        "--search-scale",
+        dest="search_scale",
+        type=float,
+        help="search region: the previous box scaled by this (default the tracker's, 1.25)",
+    )
+    parser.add_argument(
+        "--search-offset",
+        dest="search_offset_m",
+        type=float,
+        metavar="M",
+        help="search region: plus M metres a side (default the tracker's, 2); recorded in the "
+        "tracker file, so eval uses the same region",
+    )
+    parser.add_argument(
+        "--search-center",
+        dest="search_center",
+        choices=("current", "previous"),
+        help="training cuts the search region around the jittered current box (default) or "
+        "the previous frame's (keeps the target's move: frames far apart, e.g. 2 Hz)",
+    )
+    parser.add_argument(
         "--ema-decay",
         dest="ema_decay",
         type=float,
