@@ -9,6 +9,7 @@
 #     bash experiments/table4_pilot.sh runs/table4-pilot-nus1 nuscenes-1
 #   TRACKER=mbptrack ARMS=none SEEDS=0 TRAIN_EXTRA="--set adam_beta1=0.5 --set adam_eps=1e-6" \
 #     bash experiments/table4_pilot.sh runs/mbptrack-pilot kitti-1
+#   TEST=0 ...   # train only: no test reading (a lever's runs, ranked on never-trained worlds)
 set -euo pipefail
 root=${1:-runs/table4-pilot}
 setting=${2:-kitti-1}
@@ -51,6 +52,7 @@ for seed in "${seeds[@]}"; do
   for arm in "${arms[@]}"; do limited train_one "$arm" "$seed"; done
 done
 wait
+if [ "${TEST:-1}" = 0 ]; then exit 0; fi
 eval_one baselines previous_box constant_velocity
 for seed in "${seeds[@]}"; do
   for arm in "${arms[@]}"; do limited eval_one "$tracker-$arm-s$seed" "$root/$tracker-$arm-s$seed/best.pt"; done

@@ -507,3 +507,24 @@ def test_drct_seeds_names_a_missing_run(tmp_path):
     script = _script("drct_seeds")
     with pytest.raises(SystemExit, match="plain-s21: expected one"):
         script.main([str(tmp_path), "--arms", "plain", "drct", "--seeds", "21"])
+
+
+def test_search_lever_pairs_the_seeds_and_gives_the_verdict(tmp_path, capsys):
+    script = _script("search_lever")
+    new, pilot = tmp_path / "new", tmp_path / "pilot"
+    rows = [{"candidate": "previous_box", "success": 40.0}]
+    for seed, (ours, theirs) in enumerate([(30.0, 25.0), (31.0, 24.0), (29.0, 26.0)]):
+        rows.append({"candidate": str(new / f"p2b-none-s{seed}/best.pt"), "success": ours})
+        rows.append({"candidate": str(pilot / f"p2b-none-s{seed}/best.pt"), "success": theirs})
+    selection = tmp_path / "selection.json"
+    selection.write_text(json.dumps({"ranking": rows}))
+    assert script.main([str(selection), str(new), str(pilot)]) == 0
+    out = capsys.readouterr().out
+    # differences 5, 7, 3: mean 5, sd 2, half width 2.92 * 2 / sqrt(3) = 3.37
+    assert "new - pilot: +5.0 [+1.6, +8.4]" in out and "the region is a lever" in out
+    rows[1]["success"] = 20.0  # differences -5, 7, 3: the interval reaches below 0
+    selection.write_text(json.dumps({"ranking": rows}))
+    script.main([str(selection), str(new), str(pilot)])
+    assert "not a lever at this budget" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="lacks"):
+        script.main([str(selection), str(new), str(tmp_path / "elsewhere")])

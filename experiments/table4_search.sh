@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# Table IV, the search region at 2 Hz in the nuScenes scene-frame cells (docs/table4.md, "The
+# search region at 2 Hz"): P2B-U slim at the pilot's budget, seeds 0-2, trained with the search
+# region +4 m a side cut around the previous box (experiments/table4_pilot.sh, no test reading),
+# both settings side by side; per cell `pointtrack select` on the never-trained worlds ranks the
+# new runs as trained and with hold {0, 2.5} x dead zone {0.5, 1, 2} m beside the pilot's -U runs
+# as trained, the dead zone's selected file and the baselines; the paired comparison (question
+# 1) is printed; a first-ranked new file gets one test reading and the ship gate. Resumable.
+#   bash experiments/table4_search.sh [RUNS]   # RUNS holds table4-pilot-nus{1,2}-scene
+set -euo pipefail
+runs=${1:-runs}
+export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+world=(--dataset nuscenes --preset default-km --sensor hdl32 --nuscenes-frame scene)
+search="--search-offset 4 --search-center previous"
+
+for n in 1 2; do  # one core a setting
+  WORLD="${world[*]}" ARMS=none TEST=0 PARALLEL=1 TRAIN_EXTRA="$search" \
+    bash experiments/table4_pilot.sh "$runs/table4-search-nus$n-scene" "nuscenes-$n" &
+done
+wait
+
+first() {  # SELECTION_JSON -> its first-ranked candidate
+  python -c "import json,sys; print(json.load(open(sys.argv[1]))['ranking'][0]['candidate'])" "$1"
+}
+
+cell() {  # N
+  local pilot="$runs/table4-pilot-nus$1-scene" root="$runs/table4-search-nus$1-scene"
+  local out="$root/select" candidates=() previous chosen gate_root name
+  previous=$(first "$pilot/select-deadzone-none/selection.json")
+  for seed in 0 1 2; do
+    candidates+=("$root/p2b-none-s$seed/best.pt")
+    mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
+      "$root/p2b-none-s$seed" --holds 0 2.5 --min-motions 0.5 1 2 --out "$root/deadzone" \
+      --prefix search-)
+  done
+  candidates+=("$pilot/p2b-none-s0/best.pt" "$pilot/p2b-none-s1/best.pt" "$pilot/p2b-none-s2/best.pt")
+  candidates+=("$previous" previous_box constant_velocity)
+  if [ ! -e "$out/selection.json" ]; then
+    pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \
+      --no-progress --out "$out" --save "$out/p2b-nuscenes$1-u.safetensors" \
+      > "$root/logs/select.log" 2>&1
+  fi
+  python experiments/search_lever.py "$out/selection.json" "$root" "$pilot"
+  chosen=$(first "$out/selection.json")
+  case $chosen in
+    "$root"/*) gate_root=$root ;;
+    *) echo "nuscenes-$1: first-ranked $chosen is not a new run's file: no test reading"; return ;;
+  esac
+  name=$(python -c "import sys; from pathlib import Path; p = Path(sys.argv[1]); \
+print(p.parent.name if p.suffix == '.pt' else p.stem)" "$chosen")
+  mkdir -p "$root/test"
+  ln -sfn "$(realpath "$pilot/test/baselines")" "$root/test/baselines"
+  if [ ! -e "$root/test/$name/done" ]; then
+    pointtrack eval --tracker "$chosen" "${world[@]}" --seed 0 --split test --setting "nuscenes-$1" \
+      --eval-seeds 0 1 2 --no-progress --out "$root/test/$name" > "$root/logs/eval-$name.log" 2>&1
+    touch "$root/test/$name/done"
+  fi
+  python experiments/table4_ship.py "$gate_root" none "p2b-nuscenes$1-u" --select "$(realpath "$out")" \
+    --command "bash experiments/table4_search.sh runs   # training, variants, select, gate"
+}
+
+for n in 1 2; do cell "$n"; done
+python scripts/backfill_provenance.py
