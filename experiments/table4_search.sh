@@ -4,18 +4,27 @@
 # region +4 m a side cut around the previous box (experiments/table4_pilot.sh, no test reading),
 # both settings side by side; per cell `pointtrack select` on the never-trained worlds ranks the
 # new runs as trained and with hold {0, 2.5} x dead zone {0.5, 1, 2} m beside the pilot's -U runs
-# as trained, the dead zone's selected file and the baselines; the paired comparison (question
-# 1) is printed; a first-ranked new file gets one test reading and the ship gate. Resumable.
+# as trained, the previous selection's first-ranked file and the baselines; the paired
+# comparison (question 1) is printed; a first-ranked new file gets one test reading and the ship
+# gate. Resumable.
 #   bash experiments/table4_search.sh [RUNS]   # RUNS holds table4-pilot-nus{1,2}-scene
+# "Budget and region" (the same section): one seed at the budget pilot's 25,600 samples, ranked
+# beside the budget run as trained and the first selection's first-ranked file:
+#   TAG=budget-search SEEDS=0 EPOCHS=32 PREVIOUS=table4-search-nus@-scene/select \
+#     REFERENCE=table4-budget-nus@-scene bash experiments/table4_search.sh RUNS
 set -euo pipefail
 runs=${1:-runs}
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 world=(--dataset nuscenes --preset default-km --sensor hdl32 --nuscenes-frame scene)
-search="--search-offset 4 --search-center previous"
+tag=${TAG:-search}
+read -r -a seeds <<< "${SEEDS:-0 1 2}"
+previous_select=${PREVIOUS:-table4-pilot-nus@-scene/select-deadzone-none}  # @: the setting
+reference=${REFERENCE:-table4-pilot-nus@-scene}  # its p2b-none-sK runs, as trained
+train="--search-offset 4 --search-center previous --epochs ${EPOCHS:-8}"
 
 for n in 1 2; do  # one core a setting
-  WORLD="${world[*]}" ARMS=none TEST=0 PARALLEL=1 TRAIN_EXTRA="$search" \
-    bash experiments/table4_pilot.sh "$runs/table4-search-nus$n-scene" "nuscenes-$n" &
+  WORLD="${world[*]}" ARMS=none TEST=0 PARALLEL=1 TRAIN_EXTRA="$train" SEEDS="${seeds[*]}" \
+    bash experiments/table4_pilot.sh "$runs/table4-$tag-nus$n-scene" "nuscenes-$n" &
 done
 wait
 
@@ -24,23 +33,25 @@ first() {  # SELECTION_JSON -> its first-ranked candidate
 }
 
 cell() {  # N
-  local pilot="$runs/table4-pilot-nus$1-scene" root="$runs/table4-search-nus$1-scene"
+  local pilot="$runs/table4-pilot-nus$1-scene" root="$runs/table4-$tag-nus$1-scene"
+  local reference_root="$runs/${reference//@/$1}"
   local out="$root/select" candidates=() previous chosen gate_root name
-  previous=$(first "$pilot/select-deadzone-none/selection.json")
-  for seed in 0 1 2; do
-    candidates+=("$root/p2b-none-s$seed/best.pt")
+  previous=$(first "$runs/${previous_select//@/$1}/selection.json")
+  for seed in "${seeds[@]}"; do
+    candidates+=("$root/p2b-none-s$seed/best.pt" "$reference_root/p2b-none-s$seed/best.pt")
     mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
       "$root/p2b-none-s$seed" --holds 0 2.5 --min-motions 0.5 1 2 --out "$root/deadzone" \
-      --prefix search-)
+      --prefix "$tag-")
   done
-  candidates+=("$pilot/p2b-none-s0/best.pt" "$pilot/p2b-none-s1/best.pt" "$pilot/p2b-none-s2/best.pt")
-  candidates+=("$previous" previous_box constant_velocity)
+  if [ "$previous" != previous_box ]; then candidates+=("$previous"); fi
+  candidates+=(previous_box constant_velocity)
   if [ ! -e "$out/selection.json" ]; then  # --save refuses a baseline ranked first
     pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \
       --no-progress --out "$out" --save "$out/p2b-nuscenes$1-u.safetensors" \
       > "$root/logs/select.log" 2>&1 || grep -q "is not a tracker file" "$root/logs/select.log"
   fi
-  python experiments/search_lever.py "$out/selection.json" "$root" "$pilot"
+  python experiments/search_lever.py "$out/selection.json" "$root" "$reference_root" \
+    --seeds "${seeds[@]}"
   chosen=$(first "$out/selection.json")
   case $chosen in
     "$root"/*) gate_root=$root ;;
@@ -56,7 +67,8 @@ print(p.parent.name if p.suffix == '.pt' else p.stem)" "$chosen")
     touch "$root/test/$name/done"
   fi
   python experiments/table4_ship.py "$gate_root" none "p2b-nuscenes$1-u" --select "$(realpath "$out")" \
-    --command "bash experiments/table4_search.sh runs   # training, variants, select, gate"
+    --command "TAG=$tag SEEDS=\"${seeds[*]}\" EPOCHS=${EPOCHS:-8} PREVIOUS=$previous_select \
+REFERENCE=$reference bash experiments/table4_search.sh runs   # training, variants, select, gate"
 }
 
 for n in 1 2; do cell "$n"; done

@@ -521,10 +521,13 @@ def test_search_lever_pairs_the_seeds_and_gives_the_verdict(tmp_path, capsys):
     assert script.main([str(selection), str(new), str(pilot)]) == 0
     out = capsys.readouterr().out
     # differences 5, 7, 3: mean 5, sd 2, half width 2.92 * 2 / sqrt(3) = 3.37
-    assert "new - pilot: +5.0 [+1.6, +8.4]" in out and "the region is a lever" in out
+    assert "new - reference: +5.0 [+1.6, +8.4] (90 %, t, 2 df)" in out
+    assert "the region is a lever" in out
     rows[1]["success"] = 20.0  # differences -5, 7, 3: the interval reaches below 0
     selection.write_text(json.dumps({"ranking": rows}))
     script.main([str(selection), str(new), str(pilot)])
     assert "not a lever at this budget" in capsys.readouterr().out
+    script.main([str(selection), str(new), str(pilot), "--seeds", "2"])
+    assert "new - reference: +3.0 (one seed: no interval" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="lacks"):
         script.main([str(selection), str(new), str(tmp_path / "elsewhere")])
