@@ -21,6 +21,7 @@ from envs.data import Tracklet
 from envs.geometry import boxes_in_frame, points_in_box, wrap_yaw
 from envs.observation import crop_box_frame
 from envs.tracking_env import TrackingEnv
+from training import config, samples
 from training.checkpoint import CheckpointError, check_resumable
 from training.config import RECIPES, ConfigError, TrainConfig, config_from_dict
 from training.losses import loss_counts, pooled, pooled_objective
@@ -563,6 +564,7 @@ def test_search_center_previous_keeps_the_targets_move_in_the_sample():
         np.testing.assert_allclose(current[i]["search_box"].numpy()[[0, 1, 6]], 0.0, atol=1e-6)
     with pytest.raises(ValueError, match="search_center"):
         TrackingSamples(tracklets, search_center="next")
+    assert samples.SEARCH_CENTERS == config.SEARCH_CENTERS  # the config's copy (no torch there)
 
 
 def test_search_region_flags_reach_the_samples_and_the_tracker_file_options():

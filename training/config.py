@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -340,7 +341,8 @@ class TrainConfig:
             raise ConfigError("invalid training config: " + "; ".join(errors))
         return self
 
-    def _validate_search(self, bad) -> None:
+    def _validate_search(self, bad: Callable[[str, str], None]) -> None:
+        """The search-region keys, and what the tracker's samples support."""
         if self.search_scale is not None and not self.search_scale > 0:
             bad("search_scale", "must be > 0 or null")
         if self.search_offset_m is not None and not self.search_offset_m >= 0:

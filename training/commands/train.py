@@ -27,6 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags."""
     import trackers
     from training.commands.eval import add_nuscenes_frame_argument
+    from training.config import SEARCH_CENTERS
 
     parser.add_argument(
         "--tracker", choices=trackers.available("learned"), help="the model to train"
@@ -132,7 +133,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--search-center",
         dest="search_center",
-        choices=("current", "previous"),
+        choices=SEARCH_CENTERS,
         help="training cuts the search region around the jittered current box (default) or "
         "the previous frame's (keeps the target's move: frames far apart, e.g. 2 Hz)",
     )
