@@ -12,18 +12,23 @@
 # beside the budget run as trained and the first selection's first-ranked file:
 #   TAG=budget-search SEEDS=0 EPOCHS=32 PREVIOUS=table4-search-nus@-scene/select \
 #     REFERENCE=table4-budget-nus@-scene bash experiments/table4_search.sh RUNS
+# ARM=decorrelation (or sam) trains and ranks that arm instead of -U (selection in select-ARM;
+# PREVIOUS defaults to the pilot's dead-zone selection of that arm).
 set -euo pipefail
 runs=${1:-runs}
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 world=(--dataset nuscenes --preset default-km --sensor hdl32 --nuscenes-frame scene)
 tag=${TAG:-search}
+arm=${ARM:-none}
+suffix=$([ "$arm" = none ] && echo "" || echo "-$arm")  # -U keeps the first runs' names
+declare -A letter=([none]=u [decorrelation]=w [sam]=s)
 read -r -a seeds <<< "${SEEDS:-0 1 2}"
-previous_select=${PREVIOUS:-table4-pilot-nus@-scene/select-deadzone-none}  # @: the setting
+previous_select=${PREVIOUS:-table4-pilot-nus@-scene/select-deadzone-$arm}  # @: the setting
 reference=${REFERENCE:-table4-pilot-nus@-scene}  # its p2b-none-sK runs, as trained
 train="--search-offset 4 --search-center previous --epochs ${EPOCHS:-8}"
 
 for n in 1 2; do  # one core a setting
-  WORLD="${world[*]}" ARMS=none TEST=0 PARALLEL=1 TRAIN_EXTRA="$train" SEEDS="${seeds[*]}" \
+  WORLD="${world[*]}" ARMS=$arm TEST=0 PARALLEL=1 TRAIN_EXTRA="$train" SEEDS="${seeds[*]}" \
     bash experiments/table4_pilot.sh "$runs/table4-$tag-nus$n-scene" "nuscenes-$n" &
 done
 wait
@@ -35,23 +40,24 @@ first() {  # SELECTION_JSON -> its first-ranked candidate
 cell() {  # N
   local pilot="$runs/table4-pilot-nus$1-scene" root="$runs/table4-$tag-nus$1-scene"
   local reference_root="$runs/${reference//@/$1}"
-  local out="$root/select" candidates=() previous chosen gate_root name
+  local out="$root/select$suffix" ship="p2b-nuscenes$1-${letter[$arm]}"
+  local candidates=() previous chosen gate_root name
   previous=$(first "$runs/${previous_select//@/$1}/selection.json")
   for seed in "${seeds[@]}"; do
-    candidates+=("$root/p2b-none-s$seed/best.pt" "$reference_root/p2b-none-s$seed/best.pt")
+    candidates+=("$root/p2b-$arm-s$seed/best.pt" "$reference_root/p2b-$arm-s$seed/best.pt")
     mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
-      "$root/p2b-none-s$seed" --holds 0 2.5 --min-motions 0.5 1 2 --out "$root/deadzone" \
+      "$root/p2b-$arm-s$seed" --holds 0 2.5 --min-motions 0.5 1 2 --out "$root/deadzone" \
       --prefix "$tag-")
   done
   if [ "$previous" != previous_box ]; then candidates+=("$previous"); fi
   candidates+=(previous_box constant_velocity)
   if [ ! -e "$out/selection.json" ]; then  # --save refuses a baseline ranked first
     pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \
-      --no-progress --out "$out" --save "$out/p2b-nuscenes$1-u.safetensors" \
-      > "$root/logs/select.log" 2>&1 || grep -q "is not a tracker file" "$root/logs/select.log"
+      --no-progress --out "$out" --save "$out/$ship.safetensors" \
+      > "$root/logs/select$suffix.log" 2>&1 || grep -q "is not a tracker file" "$root/logs/select$suffix.log"
   fi
   python experiments/search_lever.py "$out/selection.json" "$root" "$reference_root" \
-    --seeds "${seeds[@]}"
+    --seeds "${seeds[@]}" --arm "$arm"
   chosen=$(first "$out/selection.json")
   case $chosen in
     "$root"/*) gate_root=$root ;;
@@ -66,8 +72,8 @@ print(p.parent.name if p.suffix == '.pt' else p.stem)" "$chosen")
       --eval-seeds 0 1 2 --no-progress --out "$root/test/$name" > "$root/logs/eval-$name.log" 2>&1
     touch "$root/test/$name/done"
   fi
-  python experiments/table4_ship.py "$gate_root" none "p2b-nuscenes$1-u" --select "$(realpath "$out")" \
-    --command "TAG=$tag SEEDS=\"${seeds[*]}\" EPOCHS=${EPOCHS:-8} PREVIOUS=$previous_select \
+  python experiments/table4_ship.py "$gate_root" "$arm" "$ship" --select "$(realpath "$out")" \
+    --command "ARM=$arm TAG=$tag SEEDS=\"${seeds[*]}\" EPOCHS=${EPOCHS:-8} PREVIOUS=$previous_select \
 REFERENCE=$reference bash experiments/table4_search.sh runs   # training, variants, select, gate"
 }
 

@@ -531,3 +531,5 @@ def test_search_lever_pairs_the_seeds_and_gives_the_verdict(tmp_path, capsys):
     assert "new - reference: +3.0 (one seed: no interval" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="lacks"):
         script.main([str(selection), str(new), str(tmp_path / "elsewhere")])
+    with pytest.raises(SystemExit, match="p2b-decorrelation-s0"):  # -W runs' names
+        script.main([str(selection), str(new), str(pilot), "--arm", "decorrelation"])
