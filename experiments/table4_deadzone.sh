@@ -11,9 +11,10 @@ runs=${1:-runs}
 read -r -a arms <<< "${2:-none decorrelation}"
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 world=(--dataset nuscenes --preset default-km --sensor hdl32 --nuscenes-frame scene)
+source "$(dirname "$0")/table4_common.sh"
 
 cell() {  # N ARM NAME
-  local root="$runs/table4-pilot-nus$1-scene" arm=$2 name=$3 out seed chosen test_name
+  local root="$runs/table4-pilot-nus$1-scene" arm=$2 name=$3 out
   out="$root/select-deadzone-$arm"
   local sources=("$root/p2b-$arm-s0" "$root/p2b-$arm-s1" "$root/p2b-$arm-s2")
   if [ "$arm" = none ]; then sources+=("$runs/table4-budget-nus$1-scene/p2b-none-s0"); fi
@@ -31,15 +32,7 @@ cell() {  # N ARM NAME
     pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \
       --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/select-deadzone-$arm.log" 2>&1
   fi
-  chosen=$(python -c "import json,sys; print(json.load(open(sys.argv[1]))['ranking'][0]['candidate'])" \
-    "$out/selection.json")
-  test_name=$(basename "$chosen" .safetensors)
-  if [ ! -e "$root/test/$test_name/done" ]; then
-    pointtrack eval --tracker "$chosen" "${world[@]}" --seed 0 --split test --setting "nuscenes-$1" \
-      --eval-seeds 0 1 2 --no-progress --out "$root/test/$test_name" \
-      > "$root/logs/eval-$test_name.log" 2>&1
-    touch "$root/test/$test_name/done"
-  fi
+  read_test_once "$root" "$(first_ranked "$out/selection.json")" "nuscenes-$1"
   python experiments/table4_ship.py "$root" "$arm" "$name" --select "select-deadzone-$arm" \
     --command "WORLD=\"${world[*]}\" bash experiments/table4_pilot.sh runs/$(basename "$root") nuscenes-$1" \
     --command "bash experiments/budget_pilot.sh runs/table4-budget-nus$1-scene nuscenes-$1" \

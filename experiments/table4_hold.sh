@@ -14,6 +14,7 @@ round=${ROUND:-1}
 select=$([ "$round" = 1 ] && echo select-hold || echo "select-hold$round")
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 world=(--dataset nuscenes --preset default-km --sensor hdl32 --nuscenes-frame scene)
+source "$(dirname "$0")/table4_common.sh"
 
 cell() {  # ROOT SETTING ARM NAME
   local root=$1 setting=$2 arm=$3 name=$4 out="$1/$select-$3" seed
@@ -29,20 +30,7 @@ cell() {  # ROOT SETTING ARM NAME
     pointtrack select "${candidates[@]}" --setting "$setting" "${world[@]}" --train-world 0 \
       --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/$select-$arm.log" 2>&1
   fi
-  local chosen
-  chosen=$(python -c "import json,sys; print(json.load(open(sys.argv[1]))['ranking'][0]['candidate'])" \
-    "$out/selection.json")
-  local test_name
-  case $chosen in
-    *.pt) test_name=$(basename "$(dirname "$chosen")") ;;
-    *) test_name=$(basename "$chosen" .safetensors) ;;
-  esac
-  if [ ! -e "$root/test/$test_name/done" ]; then
-    pointtrack eval --tracker "$chosen" "${world[@]}" --seed 0 --split test --setting "$setting" \
-      --eval-seeds 0 1 2 --no-progress --out "$root/test/$test_name" \
-      > "$root/logs/eval-$test_name.log" 2>&1
-    touch "$root/test/$test_name/done"
-  fi
+  read_test_once "$root" "$(first_ranked "$out/selection.json")" "$setting"
   python experiments/table4_ship.py "$root" "$arm" "$name" --select "$select-$arm" \
     --command "WORLD=\"${world[*]}\" bash experiments/table4_pilot.sh runs/$(basename "$root") $setting" \
     --command "ROUND=$round HOLDS=\"${holds[*]}\" bash experiments/table4_hold.sh runs   # hold variants, select, gate"

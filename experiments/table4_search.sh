@@ -18,6 +18,7 @@ set -euo pipefail
 runs=${1:-runs}
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
 world=(--dataset nuscenes --preset default-km --sensor hdl32 --nuscenes-frame scene)
+source "$(dirname "$0")/table4_common.sh"
 tag=${TAG:-search}
 arm=${ARM:-none}
 suffix=$([ "$arm" = none ] && echo "" || echo "-$arm")  # -U keeps the first runs' names
@@ -33,16 +34,12 @@ for n in 1 2; do  # one core a setting
 done
 wait
 
-first() {  # SELECTION_JSON -> its first-ranked candidate
-  python -c "import json,sys; print(json.load(open(sys.argv[1]))['ranking'][0]['candidate'])" "$1"
-}
-
 cell() {  # N
   local pilot="$runs/table4-pilot-nus$1-scene" root="$runs/table4-$tag-nus$1-scene"
   local reference_root="$runs/${reference//@/$1}"
   local out="$root/select$suffix" ship="p2b-nuscenes$1-${letter[$arm]}"
-  local candidates=() previous chosen gate_root name
-  previous=$(first "$runs/${previous_select//@/$1}/selection.json")
+  local candidates=() previous chosen
+  previous=$(first_ranked "$runs/${previous_select//@/$1}/selection.json")
   for seed in "${seeds[@]}"; do
     candidates+=("$root/p2b-$arm-s$seed/best.pt" "$reference_root/p2b-$arm-s$seed/best.pt")
     mapfile -t -O ${#candidates[@]} candidates < <(python experiments/hold_variants.py \
@@ -58,21 +55,15 @@ cell() {  # N
   fi
   python experiments/search_lever.py "$out/selection.json" "$root" "$reference_root" \
     --seeds "${seeds[@]}" --arm "$arm"
-  chosen=$(first "$out/selection.json")
+  chosen=$(first_ranked "$out/selection.json")
   case $chosen in
-    "$root"/*) gate_root=$root ;;
+    "$root"/*) ;;
     *) echo "nuscenes-$1: first-ranked $chosen is not a new run's file: no test reading"; return ;;
   esac
-  name=$(python -c "import sys; from pathlib import Path; p = Path(sys.argv[1]); \
-print(p.parent.name if p.suffix == '.pt' else p.stem)" "$chosen")
   mkdir -p "$root/test"
   ln -sfn "$(realpath "$pilot/test/baselines")" "$root/test/baselines"
-  if [ ! -e "$root/test/$name/done" ]; then
-    pointtrack eval --tracker "$chosen" "${world[@]}" --seed 0 --split test --setting "nuscenes-$1" \
-      --eval-seeds 0 1 2 --no-progress --out "$root/test/$name" > "$root/logs/eval-$name.log" 2>&1
-    touch "$root/test/$name/done"
-  fi
-  python experiments/table4_ship.py "$gate_root" "$arm" "$ship" --select "$(realpath "$out")" \
+  read_test_once "$root" "$chosen" "nuscenes-$1"
+  python experiments/table4_ship.py "$root" "$arm" "$ship" --select "$(realpath "$out")" \
     --command "ARM=$arm TAG=$tag SEEDS=\"${seeds[*]}\" EPOCHS=${EPOCHS:-8} PREVIOUS=$previous_select \
 REFERENCE=$reference bash experiments/table4_search.sh runs   # training, variants, select, gate"
 }

@@ -260,17 +260,18 @@ class TrackingSamples(FrameCandidateSamples):
             f"search points in {self.MAX_REDRAWS} redraws (lower min_crop_points)"
         )
 
-    def _search_offset(self, gt: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-        """The Gaussian search offset ``(dx, dy)`` in the LiDAR frame, m (see ``limit_box``)."""
+    def _search_offset(self, box: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The Gaussian search offset ``(dx, dy)`` in the LiDAR frame, m, of the crop cut around
+        ``box`` (the current or the previous ground truth; see ``limit_box``)."""
         d = rng.normal(0.0, SEARCH_SIGMA_XY_M, 2)
         if not self.limit_box:
             return d  # isotropic: drawn directly in the LiDAR frame
-        width = float(gt[4])
+        width = float(box[4])
         if d[0] > width:
             d[0] = rng.uniform(-1.0, 1.0)
         if d[1] > min(width, 2.0):
             d[1] = rng.uniform(-1.0, 1.0)
-        c, s = math.cos(gt[6]), math.sin(gt[6])
+        c, s = math.cos(box[6]), math.sin(box[6])
         return np.array([c * d[0] - s * d[1], s * d[0] + c * d[1]])
 
     def _build(
