@@ -28,10 +28,7 @@ cell() {  # N ARM NAME
       "$source" --holds 0 2.5 --min-motions 0.5 1 2 --out "$(dirname "$source")/deadzone" \
       --prefix "$prefix")
   done
-  if [ ! -e "$out/selection.json" ]; then
-    pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \
-      --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/select-deadzone-$arm.log" 2>&1
-  fi
+  select_once "$out" "$name" "nuscenes-$1" "$root/logs/select-deadzone-$arm.log" "${candidates[@]}"
   read_test_once "$root" "$(first_ranked "$out/selection.json")" "nuscenes-$1"
   python experiments/table4_ship.py "$root" "$arm" "$name" --select "select-deadzone-$arm" \
     --command "WORLD=\"${world[*]}\" bash experiments/table4_pilot.sh runs/$(basename "$root") nuscenes-$1" \

@@ -26,10 +26,7 @@ cell() {  # ROOT SETTING ARM NAME
   python experiments/hold_variants.py "$root/p2b-$arm-s0" "$root/p2b-$arm-s1" \
     "$root/p2b-$arm-s2" --holds "${holds[@]}" --out "$root/hold" > "$root/hold/$arm-$round.txt"
   mapfile -t -O ${#candidates[@]} candidates < "$root/hold/$arm-$round.txt"
-  if [ ! -e "$out/selection.json" ]; then
-    pointtrack select "${candidates[@]}" --setting "$setting" "${world[@]}" --train-world 0 \
-      --no-progress --out "$out" --save "$out/$name.safetensors" > "$root/logs/$select-$arm.log" 2>&1
-  fi
+  select_once "$out" "$name" "$setting" "$root/logs/$select-$arm.log" "${candidates[@]}"
   read_test_once "$root" "$(first_ranked "$out/selection.json")" "$setting"
   python experiments/table4_ship.py "$root" "$arm" "$name" --select "$select-$arm" \
     --command "WORLD=\"${world[*]}\" bash experiments/table4_pilot.sh runs/$(basename "$root") $setting" \

@@ -48,11 +48,7 @@ cell() {  # N
   done
   if [ "$previous" != previous_box ]; then candidates+=("$previous"); fi
   candidates+=(previous_box constant_velocity)
-  if [ ! -e "$out/selection.json" ]; then  # --save refuses a baseline ranked first
-    pointtrack select "${candidates[@]}" --setting "nuscenes-$1" "${world[@]}" --train-world 0 \
-      --no-progress --out "$out" --save "$out/$ship.safetensors" \
-      > "$root/logs/select$suffix.log" 2>&1 || grep -q "is not a tracker file" "$root/logs/select$suffix.log"
-  fi
+  select_once "$out" "$ship" "nuscenes-$1" "$root/logs/select$suffix.log" "${candidates[@]}"
   python experiments/search_lever.py "$out/selection.json" "$root" "$reference_root" \
     --seeds "${seeds[@]}" --arm "$arm"
   chosen=$(first_ranked "$out/selection.json")
