@@ -35,12 +35,13 @@ def _still_variant(variant: str):
             return torch.ones((), dtype=torch.bool, device=points.device)
         if "previous" not in variant:
             return LIBRARY_STILL(scene, hold_m)
-        first = scene.first  # the re-ranking reads it after this test: put back
-        scene.__dict__["first"] = scene.previous  # the cached slot the test reads
+        first, arrays = scene.first, scene.arrays  # the re-ranking reads them after: put back
+        scene.__dict__["first"] = scene.previous  # the cached slot the torch path reads
+        scene.__dict__["arrays"] = None  # the compiled path reads the crops' arrays instead
         try:
             return LIBRARY_STILL(scene, hold_m)
         finally:
-            scene.__dict__["first"] = first
+            scene.__dict__["first"], scene.__dict__["arrays"] = first, arrays
 
     return still
 

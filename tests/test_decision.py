@@ -326,12 +326,13 @@ def test_re_ranking_agrees_with_an_independent_choice_on_network_outputs():
     )
 
 
-def test_compiled_crops_equal_the_torch_ops(recorded, monkeypatch):
-    """The re-ranking's compiled crop-and-nearest pass (``trackers.kernels.crop_nearest_kernel``)
-    against the torch ops it replaces, on the recorded observations and 24 candidate boxes each
-    (moved up to 1.5 m, turned up to 0.5 rad): the same crops and Chamfer distances, bit for
+def test_compiled_decision_step_equals_the_torch_ops(recorded, monkeypatch):
+    """The decision step's compiled passes (``trackers.kernels.scene_kernel``,
+    ``still_kernel``, ``crop_distance_kernel``) against the torch ops they replace, on the
+    recorded observations and 24 candidate boxes each (moved up to 1.5 m, turned up to 0.5
+    rad): the same point sets, and the same still-target and re-ranking distances, bit for
     bit."""
-    if kernels.crop_nearest_kernel() is None:
+    if kernels.scene_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
     obs = {k: recorded[f"obs_{k}"] for k in KEYS}
     batch, _ = prepare_observation(obs)
@@ -341,30 +342,32 @@ def test_compiled_crops_equal_the_torch_ops(recorded, monkeypatch):
     )
     boxes = torch.cat([offsets[..., :3], torch.zeros_like(offsets[..., :3]), offsets[..., 3:]], -1)
     boxes[:, 0] = 0  # the reference box among them
+    tracker = trackers.load("p2b-kitti1-u")
 
-    def run():
-        observed = scenes(trackers.load("p2b-kitti1-u"), batch)
-        crops = [  # where _crop_distances asks for them: a first crop and a search
-            decision._crops_and_nearest(sc.size, sc.points[0], sc.first[0], b)
-            if sc.crop_masks[0].any() and sc.real.any()
-            else None
-            for sc, b in zip(observed, boxes, strict=True)
-        ]
-        distances = [decision._crop_distances(sc, b) for sc, b in zip(observed, boxes, strict=True)]
-        return crops, torch.stack(distances)
+    def run(compiled: bool):
+        observed = scenes(tracker, batch)
+        assert all((sc.arrays is not None) == compiled for sc in observed)
+        sets = []
+        for sc in observed:  # each set read back through its layout (its order is free)
+            (points, layout), masks = sc.points, sc.crop_masks
+            crops = [c[lay[m]] for (c, lay), m in zip((sc.first, sc.previous), masks, strict=True)]
+            sets.append((sc.real, masks, points[layout[sc.real]], *crops))
+        still = [decision.still_distances(sc) for sc in observed]
+        crop = [decision._crop_distances(sc, b) for sc, b in zip(observed, boxes, strict=True)]
+        return sets, still, torch.stack(crop)
 
-    compiled, compiled_d = run()
-    monkeypatch.setattr(kernels, "crop_nearest_kernel", lambda: None)
-    reference, reference_d = run()
-    assert torch.equal(compiled_d, reference_d)
-    assert torch.isfinite(reference_d).float().mean() > 0.3  # crops with points, and without
-    assert not torch.isfinite(reference_d).all()
-    for c, r in zip(compiled, reference, strict=True):
+    compiled_sets, compiled_still, compiled_crop = run(True)
+    monkeypatch.setattr(kernels, "scene_kernel", lambda: None)
+    sets, still, crop = run(False)
+    assert torch.equal(compiled_crop, crop)
+    assert torch.isfinite(crop).float().mean() > 0.3  # crops with points, and without
+    assert not torch.isfinite(crop).all()
+    assert sum(d is not None for d in still) > len(still) // 2  # the test decides on most
+    for c, r in zip(compiled_still, still, strict=True):
         assert (c is None) == (r is None)
-        if r is not None:
-            assert torch.equal(c[0], r[0])  # the crops
-            assert torch.equal(c[2], r[2])  # the first crop's nearest distances
-            assert torch.equal(c[1][r[0]], r[1][r[0]])  # the crops' (only there defined)
+        assert r is None or torch.equal(c, r)
+    for c, r in zip(compiled_sets, sets, strict=True):
+        assert all(torch.equal(x, y) for x, y in zip(c, r, strict=True))
 
 
 def test_inference_config_checks_its_fields():

@@ -43,6 +43,7 @@ from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 from envs.geometry import world_to_box_torch
@@ -183,40 +184,97 @@ def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
     return (points.abs() <= half).all(-1) & _above_ground(points, size)
 
 
+@dataclass(frozen=True)
+class _SceneArrays:
+    """A :class:`Scene` from one compiled pass (:func:`trackers.kernels.scene_kernel`): the
+    search's real rows ``(N,)``, its distinct points ``points[:u]`` and ``layout (N,)``, the
+    crops' masks ``(2, L)``, distinct points ``crop_points[k, :crop_counts[k]]`` and layouts
+    ``(2, L)``, and the crop box's ``half`` extent ``(3,)`` and ``floor`` ``(1,)``."""
+
+    real: np.ndarray
+    points: np.ndarray
+    layout: np.ndarray
+    crop_masks: np.ndarray
+    crop_points: np.ndarray
+    crop_layouts: np.ndarray
+    crop_counts: np.ndarray
+    half: np.ndarray
+    floor: np.ndarray
+
+
 class Scene:
     """One observation as the still-target test and the re-ranking read it: ``search (N, 3)``,
     ``size (3,)`` and the template crops ``(2, 256, 3)`` (first, previous), with the point sets
     both need computed once, when first asked (``act`` builds the scenes before the test and
-    hands the moving ones to the re-ranking after the network)."""
+    hands the moving ones to the re-ranking after the network). On CPU float32 with the
+    ``fast`` extra they come from one compiled pass (:attr:`arrays`), the same sets."""
 
     def __init__(self, search: torch.Tensor, size: torch.Tensor, crops: torch.Tensor) -> None:
         self.search, self.size, self.crops = search.detach(), size, crops
 
     @functools.cached_property
+    def arrays(self) -> _SceneArrays | None:
+        """The scene's point sets from :func:`trackers.kernels.scene_kernel`, or ``None`` (no
+        numba, not CPU float32): the properties below then run the torch ops."""
+        float32 = self.search.dtype == self.crops.dtype == torch.float32
+        kernel = kernels.scene_kernel() if float32 and kernels.compilable(self.search) else None
+        if kernel is None:
+            return None
+        search, crops = self.search.contiguous().numpy(), self.crops.contiguous().numpy()
+        half = (self.size * (TEMPLATE_SCALE / 2)).numpy()  # as _crop_mask computes them
+        floor = (-self.size[2:] / 2 + HOLD_GROUND_CLEARANCE_M).numpy()  # as _above_ground
+        n, length = len(search), crops.shape[1]
+        real, layout = np.empty(n, np.bool_), np.empty(n, np.int64)
+        points, crop_points = np.empty_like(search), np.empty_like(crops)
+        crop_masks, crop_layouts = np.empty((2, length), np.bool_), np.empty((2, length), np.int64)
+        counts = np.empty(3, np.int64)
+        kernel(
+            search, search.view(np.int32), crops, crops.view(np.int32), floor, real, points,
+            layout, crop_masks, crop_points, crop_layouts, counts,
+        )  # fmt: skip
+        return _SceneArrays(
+            real, points[: counts[0]], layout, crop_masks, crop_points, crop_layouts,
+            counts[1:], half, floor,
+        )  # fmt: skip
+
+    @functools.cached_property
     def real(self) -> torch.Tensor:
         """``(N,)`` bool: the search's points (zero rows pad it, wherever a box moves them)."""
+        if self.arrays is not None:
+            return torch.from_numpy(self.arrays.real)
         return (self.search != 0).any(-1)
 
     @functools.cached_property
     def points(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The search's distinct real points ``(U, 3)`` and their layout ``(N,)``
         (:func:`trackers.ops.distinct_points`)."""
+        if self.arrays is not None:
+            return torch.from_numpy(self.arrays.points), torch.from_numpy(self.arrays.layout)
         return ops.distinct_points(self.search, self.real)
 
     @functools.cached_property
     def crop_masks(self) -> torch.Tensor:
         """``(2, 256)`` bool: the crops' points above the ground (the env cropped them)."""
+        if self.arrays is not None:
+            return torch.from_numpy(self.arrays.crop_masks)
         return _above_ground(self.crops.reshape(1, -1, 3), self.size[None]).reshape(2, -1)
+
+    def _crop(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        a = self.arrays
+        if a is not None:
+            points = a.crop_points[k, : a.crop_counts[k]]
+            return torch.from_numpy(points), torch.from_numpy(a.crop_layouts[k])
+        return ops.distinct_points(self.crops[k], self.crop_masks[k])
 
     @functools.cached_property
     def first(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The first crop's distinct points ``(F, 3)`` and their layout ``(256,)``."""
-        return ops.distinct_points(self.crops[0], self.crop_masks[0])
+        return self._crop(0)
 
     @functools.cached_property
     def previous(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The previous crop's distinct points ``(P, 3)`` and their layout ``(256,)``."""
-        return ops.distinct_points(self.crops[1], self.crop_masks[1])
+        return self._crop(1)
 
 
 def scenes(tracker: Tracker, batch: Mapping[str, torch.Tensor]) -> list[Scene]:
@@ -260,14 +318,27 @@ def _reference_crop(scene: Scene) -> tuple[torch.Tensor, torch.Tensor, torch.Ten
 
 def _still(scene: Scene, hold_m: float) -> torch.Tensor:
     """The still-target test of one observation -> a bool scalar: the reference box's crop
-    against both template crops, in one pass."""
+    within ``hold_m`` of both template crops (:func:`still_distances`)."""
+    distances = still_distances(scene)
+    if distances is None:
+        return torch.zeros((), dtype=torch.bool, device=scene.search.device)
+    return (distances < hold_m).all()
+
+
+def still_distances(scene: Scene) -> torch.Tensor | None:
+    """The symmetric Chamfer distances ``(2,)`` of the reference box's crop of the search to
+    the first and the previous crop, in one pass; ``None`` where the test decides nothing (an
+    empty search, or fewer than :data:`HOLD_MIN_POINTS` points in the box or a crop). Compiled
+    on CPU float32 with the ``fast`` extra (:func:`trackers.kernels.still_kernel`: the same
+    distances at the same rows, so the same square roots and row sums, bit for bit)."""
+    if scene.arrays is not None:
+        return _still_distances_compiled(scene.arrays)
     points, layout = scene.points
-    masks = scene.crop_masks
     if not len(points):  # an empty search
-        return torch.zeros((), dtype=torch.bool, device=points.device)
+        return None
     in_crop, in_box, enough = _reference_crop(scene)
     if not bool(enough):
-        return enough
+        return None
     (first, first_layout), (previous, previous_layout) = scene.first, scene.previous
     crop_points = torch.cat([first, previous])  # the two crops as two sets of one cloud
     held = torch.arange(len(crop_points), device=first.device) < len(first)
@@ -278,9 +349,25 @@ def _still(scene: Scene, hold_m: float) -> torch.Tensor:
         crop_points.expand(2, -1, -1), held, points.index_select(0, cropped)
     )
     search_near = near.new_zeros(2, len(points)).index_copy_(1, cropped, near)
-    crop_to_search = ops.layout_mean(crop_near, crop_layout, masks)
+    crop_to_search = ops.layout_mean(crop_near, crop_layout, scene.crop_masks)
     search_to_crop = ops.layout_mean(search_near, layout, in_box.expand(2, -1))
-    return (0.5 * (crop_to_search + search_to_crop) < hold_m).all()
+    return 0.5 * (crop_to_search + search_to_crop)
+
+
+def _still_distances_compiled(a: _SceneArrays) -> torch.Tensor | None:
+    n, length = len(a.real), a.crop_masks.shape[1]
+    search_sq = np.empty((2, n), a.points.dtype)
+    crop_sq = np.empty((2, length), a.points.dtype)
+    boxed = kernels.still_kernel()(
+        a.points, a.layout, a.real, a.half, a.floor, a.crop_points, a.crop_counts,
+        a.crop_layouts, a.crop_masks, HOLD_MIN_POINTS, search_sq, crop_sq,
+    )  # fmt: skip
+    if boxed < 0:
+        return None
+    masked = torch.from_numpy(a.crop_masks).sum(1)
+    crop_to_search = torch.from_numpy(crop_sq).sqrt_().sum(1) / masked
+    search_to_crop = torch.from_numpy(search_sq).sqrt_().sum(1) / torch.tensor([boxed, boxed])
+    return 0.5 * (crop_to_search + search_to_crop)
 
 
 def choose_action(
@@ -368,11 +455,20 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
     """The Chamfer distance of each candidate box's crop of one observation's search to its
     first crop, ``inf`` for a crop of fewer than :data:`HOLD_MIN_POINTS` points: boxes ``(C,
     7)`` -> ``(C,)``. The search's distinct points (copies stay copies in every frame) in every
-    candidate's frame, one pass for all."""
+    candidate's frame, one pass for all (compiled on CPU float32 with the ``fast`` extra:
+    :func:`trackers.kernels.crop_distance_kernel`, the same bits)."""
     inf = torch.full((len(boxes),), math.inf, dtype=scene.search.dtype, device=boxes.device)
     first_mask = scene.crop_masks[0]
     if not (bool(first_mask.any()) and bool(scene.real.any())):
         return inf
+    a = scene.arrays
+    if a is not None and boxes.dtype == torch.float32:
+        crop_sq, first_sq, in_box_count = _crop_distances_compiled(a, boxes)
+        masked = torch.full_like(in_box_count, int(np.count_nonzero(a.crop_masks[0])))
+        crop_to_first = crop_sq.sqrt_().sum(1) / in_box_count
+        first_to_crop = first_sq.sqrt_().sum(1) / masked
+        distance = 0.5 * (crop_to_first + first_to_crop)
+        return torch.where(in_box_count >= HOLD_MIN_POINTS, distance, inf)
     (points, layout), (first, first_layout) = scene.points, scene.first
     crops = _crops_and_nearest(scene.size, points, first, boxes)
     if crops is None:  # no candidate's crop holds a point
@@ -386,29 +482,32 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
     return torch.where(in_box.sum(1) >= HOLD_MIN_POINTS, distance, inf)
 
 
+def _crop_distances_compiled(
+    a: _SceneArrays, boxes: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each candidate box's squared nearest distances at the search's rows its crop holds
+    ``(C, N)`` and at the first crop's masked rows ``(C, L)`` (0 elsewhere), and how many rows
+    each crop holds ``(C,)`` int64 (:func:`trackers.kernels.crop_distance_kernel`)."""
+    c, n, length = len(boxes), len(a.real), a.crop_masks.shape[1]
+    crop_sq = np.empty((c, n), np.float32)
+    first_sq = np.empty((c, length), np.float32)
+    in_box_count = np.empty(c, np.int64)
+    yaw = boxes[:, 6]
+    kernels.crop_distance_kernel()(
+        a.points, a.layout, a.real, torch.cos(yaw).numpy(), torch.sin(yaw).numpy(),
+        boxes[:, :3].contiguous().numpy(), a.half, a.floor, a.crop_points[0, : a.crop_counts[0]],
+        a.crop_layouts[0], a.crop_masks[0], crop_sq, first_sq, in_box_count,
+    )  # fmt: skip
+    return torch.from_numpy(crop_sq), torch.from_numpy(first_sq), torch.from_numpy(in_box_count)
+
+
 def _crops_and_nearest(
     size: torch.Tensor, points: torch.Tensor, first: torch.Tensor, boxes: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
     """Which of ``points (U, 3)`` each candidate box ``(C, 7)`` crops, ``(C, U)`` bool, their
     distances to the nearest point of ``first (F, 3)``, ``(C, U)`` (any value outside the crop),
     and ``first``'s to the nearest point of each crop, ``(C, F)``; None when no crop holds a
-    point. On CPU with the ``fast`` extra one compiled pass
-    (:func:`trackers.kernels.crop_nearest_kernel`, the same bits)."""
-    kernel = kernels.crop_nearest_kernel() if kernels.compilable(points, first) else None
-    # no autograd here: the caller's boxes are detached (the choice is not differentiated)
-    if kernel is not None and boxes.dtype == points.dtype:
-        c = len(boxes)
-        in_crop = torch.empty(c, len(points), dtype=torch.bool)
-        sq_near, sq_first = points.new_empty(c, len(points)), points.new_empty(c, len(first))
-        half = size * (TEMPLATE_SCALE / 2)  # as _crop_mask and _above_ground compute them
-        floor = (-size[2:] / 2 + HOLD_GROUND_CLEARANCE_M).contiguous()  # (1,)
-        yaw = boxes[:, 6]
-        inputs = (points, torch.cos(yaw), torch.sin(yaw), boxes[:, :3], half, floor, first)
-        outputs = (in_crop, sq_near, sq_first)
-        kernel(*(t.contiguous().numpy() for t in inputs), *(t.numpy() for t in outputs))
-        if not in_crop.any():
-            return None
-        return in_crop, sq_near.sqrt_(), sq_first.sqrt_()
+    point (the torch ops of :func:`trackers.kernels.crop_distance_kernel`)."""
     in_frames = world_to_box_torch(points[None], boxes)  # (C, U, 3)
     in_crop = _crop_mask(in_frames, size[None].expand(len(boxes), 3))  # (C, U)
     # only the points some crop holds meet the first crop's (the rest of the search is far)

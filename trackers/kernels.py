@@ -1,7 +1,8 @@
 """Compiled CPU kernels for :mod:`trackers.ops` (numba, the ``fast`` extra).
 
 Each getter (:func:`hash_kernel`, :func:`fps_kernel`, :func:`ball_kernel`, :func:`knn_kernel`,
-:func:`distinct_kernel`, :func:`nearest_kernel`, :func:`crop_nearest_kernel`; built with
+:func:`distinct_kernel`, :func:`nearest_kernel`, and the decision step's
+:func:`scene_kernel`, :func:`still_kernel`, :func:`crop_distance_kernel`; built with
 :func:`envs.kernels.compiled`) compiles its kernel on first use (cached on disk by numba) and
 returns it, or ``None`` without numba: the ops then run their torch paths.
 Every kernel computes what its torch path computes, the float operations in the same order
@@ -22,12 +23,14 @@ from envs.kernels import compiled
 __all__ = [
     "ball_kernel",
     "compilable",
-    "crop_nearest_kernel",
+    "crop_distance_kernel",
     "distinct_kernel",
     "fps_kernel",
     "hash_kernel",
     "knn_kernel",
     "nearest_kernel",
+    "scene_kernel",
+    "still_kernel",
 ]
 
 _MASK32 = 0xFFFFFFFF
@@ -285,29 +288,200 @@ def nearest_kernel(njit: Callable) -> Callable:
 
 
 @compiled
-def crop_nearest_kernel(njit: Callable) -> Callable:
+def scene_kernel(njit: Callable) -> Callable:
+    """The decision step's view of one observation (:class:`trackers.decision.Scene`) in one
+    pass: ``(search (N, 3) float32, search_bits (N, 3) int32, crops (2, L, 3) float32,
+    crop_bits (2, L, 3) int32, floor (1,), real (N,) bool out, points (N, 3) out, layout (N,)
+    int64 out, crop_masks (2, L) bool out, crop_points (2, L, 3) out, crop_layouts (2, L)
+    int64 out, counts (3,) int64 out)``. ``real``: the search's rows that are not zero
+    padding; ``crop_masks``: the crops' points above ``floor`` (as ``_above_ground``); then, as
+    :func:`distinct_kernel`, the distinct masked points of the search and of each crop
+    (``points[:counts[0]]``, ``crop_points[k, :counts[1 + k]]``) and each masked row's
+    distinct point (``layout``; the count for the others). Replaces three distinct-point
+    calls and ~20 small tensor ops per observation."""
+    unmasked = np.iinfo(np.int64).max
+
+    @njit
+    def scene_rows(
+        search,
+        search_bits,
+        crops,
+        crop_bits,
+        floor,
+        real,
+        points,
+        layout,
+        crop_masks,
+        crop_points,
+        crop_layouts,
+        counts,
+    ):  # pragma: no cover - compiled
+        def distinct(xyz, bits, mask, out, out_layout):  # distinct_kernel's loop, inlined
+            n = bits.shape[0]
+            key = np.empty(n, np.int64)
+            for i in range(n):
+                x, y = np.int64(bits[i, 0]), np.int64(bits[i, 1]) & np.int64(_MASK32)
+                key[i] = (x << 32) | y if mask[i] else unmasked
+            order = np.argsort(key, kind="mergesort")
+            u, prev = 0, -1
+            for j in range(n):
+                i = order[j]
+                if not mask[i]:
+                    out_layout[i] = -1
+                    continue
+                same = prev >= 0 and (
+                    bits[i, 0] == bits[prev, 0]
+                    and bits[i, 1] == bits[prev, 1]
+                    and bits[i, 2] == bits[prev, 2]
+                )
+                if not same:
+                    out[u, 0], out[u, 1], out[u, 2] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+                    u += 1
+                out_layout[i] = u - 1
+                prev = i
+            for i in range(n):
+                if out_layout[i] < 0:
+                    out_layout[i] = u
+            return u
+
+        zero = search.dtype.type(0)
+        for i in range(search.shape[0]):
+            real[i] = search[i, 0] != zero or search[i, 1] != zero or search[i, 2] != zero
+        counts[0] = distinct(search, search_bits, real, points, layout)
+        for k in range(2):
+            for j in range(crops.shape[1]):
+                x, y, z = crops[k, j, 0], crops[k, j, 1], crops[k, j, 2]
+                crop_masks[k, j] = (x != zero or y != zero or z != zero) and z > floor[0]
+            counts[1 + k] = distinct(
+                crops[k], crop_bits[k], crop_masks[k], crop_points[k], crop_layouts[k]
+            )
+
+    return scene_rows
+
+
+@compiled
+def still_kernel(njit: Callable) -> Callable:
+    """The still-target test's crops and nearest distances of one observation
+    (:func:`trackers.decision._still`): ``(points (U, 3), layout (N,), real (N,), half (3,),
+    floor (1,), crop_points (2, L, 3), crop_counts (2,), crop_layouts (2, L), crop_masks (2, L),
+    min_points, search_sq (2, N) out, crop_sq (2, L) out) -> boxed``. The distinct search
+    points inside the reference box scaled as ``_crop_mask`` tests it; ``boxed``: how many of
+    the search's rows they hold, or ``-1`` where that or either crop's count is under
+    ``min_points`` (the test decides nothing; the outputs are then unset). Otherwise, per crop
+    ``k``, the squared distances (as :func:`nearest_kernel`) from each boxed row to the crop's
+    nearest point, ``search_sq[k]``, and from each masked crop row to the nearest boxed point,
+    ``crop_sq[k]``, written at the rows (0 at the others): the caller's square roots and row
+    sums give :func:`trackers.ops.layout_mean`'s means bit for bit."""
+
+    @njit
+    def still_rows(
+        points,
+        layout,
+        real,
+        half,
+        floor,
+        crop_points,
+        crop_counts,
+        crop_layouts,
+        crop_masks,
+        min_points,
+        search_sq,
+        crop_sq,
+    ):  # pragma: no cover - compiled
+        zero, inf = points.dtype.type(0), points.dtype.type(np.inf)
+        u, n, length = points.shape[0], layout.shape[0], crop_layouts.shape[1]
+        in_crop = np.empty(u, np.bool_)
+        for q in range(u):
+            x, y, z = points[q, 0], points[q, 1], points[q, 2]
+            in_crop[q] = (
+                abs(x) <= half[0]
+                and abs(y) <= half[1]
+                and abs(z) <= half[2]
+                and (x != zero or y != zero or z != zero)
+                and z > floor[0]
+            )
+        boxed = 0
+        for i in range(n):
+            if real[i] and in_crop[layout[i]]:
+                boxed += 1
+        if boxed < min_points:
+            return -1
+        for k in range(2):
+            masked = 0
+            for j in range(length):
+                masked += crop_masks[k, j]
+            if masked < min_points:
+                return -1
+        search_near = np.empty(u, points.dtype)
+        for k in range(2):
+            f = crop_counts[k]
+            crop_near = np.full(f, inf, points.dtype)
+            for q in range(u):
+                best = inf
+                if in_crop[q]:
+                    px, py, pz = points[q, 0], points[q, 1], points[q, 2]
+                    for j in range(f):
+                        dx = crop_points[k, j, 0] - px
+                        dy = crop_points[k, j, 1] - py
+                        dz = crop_points[k, j, 2] - pz
+                        d = dx * dx + dy * dy + dz * dz
+                        if d < best:
+                            best = d
+                        if d < crop_near[j]:
+                            crop_near[j] = d
+                search_near[q] = best
+            for i in range(n):
+                boxed_row = real[i] and in_crop[layout[i]]
+                search_sq[k, i] = search_near[layout[i]] if boxed_row else zero
+            for j in range(length):
+                crop_sq[k, j] = crop_near[crop_layouts[k, j]] if crop_masks[k, j] else zero
+        return boxed
+
+    return still_rows
+
+
+@compiled
+def crop_distance_kernel(njit: Callable) -> Callable:
     """The re-ranking's crops and nearest distances of one observation, every candidate box in
-    one pass (:func:`trackers.decision._crop_distances`): ``(points (U, 3), cos (C,), sin (C,),
-    centres (C, 3), half (3,), floor (1,), first (F, 3), in_crop (C, U) bool out, near (C, U) out,
-    first_near (C, F) out)``. Each point in each candidate's frame with the float operations of
+    one pass (:func:`trackers.decision._crop_distances`): ``(points (U, 3), layout (N,), real
+    (N,), cos (C,), sin (C,), centres (C, 3), half (3,), floor (1,), first (F, 3), first_layout
+    (L,), first_mask (L,), crop_sq (C, N) out, first_sq (C, L) out, boxed (C,) int64 out)``.
+    Each distinct point in each candidate's frame with the float operations of
     ``world_to_box_torch`` in their order (``c dx + s dy``, ``-s dx + c dy``, ``dz``), inside
     the crop as ``_crop_mask`` tests it (``|x| <= half``, not the origin, ``z > floor``); then,
     as :func:`nearest_kernel`, the squared distances of the crop's points to the first crop and
-    the minima both ways (``inf`` outside a crop / for an empty one). The same bits as the torch
-    ops, without their ~30 small tensor ops per observation; the caller takes the square roots
-    with torch."""
+    the minima both ways, written at the search's boxed rows (``crop_sq``) and the first crop's
+    masked rows (``first_sq``; ``inf`` for an empty crop), 0 at the others, and how many rows
+    each crop holds (``boxed``): the caller's square roots and row sums give
+    :func:`trackers.ops.layout_mean`'s means bit for bit, without its ~40 small tensor ops per
+    observation."""
 
     @njit
-    def crop_nearest(
-        points, cos, sin, centres, half, floor, first, in_crop, near, first_near
+    def crop_distances(
+        points,
+        layout,
+        real,
+        cos,
+        sin,
+        centres,
+        half,
+        floor,
+        first,
+        first_layout,
+        first_mask,
+        crop_sq,
+        first_sq,
+        boxed,
     ):  # pragma: no cover - compiled
-        c_count, u = in_crop.shape
-        f = first.shape[0]
-        inf = points.dtype.type(np.inf)
-        zero = points.dtype.type(0)
-        first_near[:] = inf
+        c_count, n = crop_sq.shape
+        u, f, length = points.shape[0], first.shape[0], first_layout.shape[0]
+        inf, zero = points.dtype.type(np.inf), points.dtype.type(0)
+        in_crop = np.empty(u, np.bool_)
+        near = np.empty(u, points.dtype)
+        first_near = np.empty(f, points.dtype)
         for c in range(c_count):
             co, si, nsi = cos[c], sin[c], -sin[c]
+            first_near[:] = inf
             for i in range(u):
                 dx = points[i, 0] - centres[c, 0]
                 dy = points[i, 1] - centres[c, 1]
@@ -321,11 +495,7 @@ def crop_nearest_kernel(njit: Callable) -> Callable:
                     and (x != zero or y != zero or z != zero)
                     and z > floor[0]
                 )
-                in_crop[c, i] = inside
-                # nearest_kernel's loop, repeated: a kernel cannot call another compiled one
-                # without a dispatcher in its closure, which misses numba's disk cache in every
-                # process (see hash_kernel); two passes (the crops, then nearest_kernel) cost
-                # the re-ranking ~20 % more (0.40-0.47 against 0.31-0.40 ms per observation)
+                in_crop[i] = inside
                 best = inf
                 if inside:
                     for j in range(f):
@@ -333,8 +503,18 @@ def crop_nearest_kernel(njit: Callable) -> Callable:
                         d = ex * ex + ey * ey + ez * ez
                         if d < best:
                             best = d
-                        if d < first_near[c, j]:
-                            first_near[c, j] = d
-                near[c, i] = best
+                        if d < first_near[j]:
+                            first_near[j] = d
+                near[i] = best
+            count = 0
+            for i in range(n):
+                if real[i] and in_crop[layout[i]]:
+                    crop_sq[c, i] = near[layout[i]]
+                    count += 1
+                else:
+                    crop_sq[c, i] = zero
+            boxed[c] = count
+            for j in range(length):
+                first_sq[c, j] = first_near[first_layout[j]] if first_mask[j] else zero
 
-    return crop_nearest
+    return crop_distances

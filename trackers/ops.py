@@ -20,6 +20,7 @@ import itertools
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 
 from trackers import kernels
@@ -528,8 +529,27 @@ def load_kernels() -> bool:
     knn(2, points[:, :2], points)
     distinct_points(points[0], torch.ones(4, dtype=torch.bool))
     nearest_distances(points[:, :2], None, points[0])
-    one = torch.ones(1)  # and the decision step's crops (trackers.decision)
-    crop_args = (points[0], one, one, torch.zeros(1, 3), torch.ones(3), one, points[0, :1])
-    crop_outputs = (torch.empty(1, 4, dtype=torch.bool), torch.empty(1, 4), torch.empty(1, 1))
-    kernels.crop_nearest_kernel()(*(t.numpy() for t in (*crop_args, *crop_outputs)))
+    _load_decision_kernels(points[0].numpy())
     return True
+
+
+def _load_decision_kernels(xyz: np.ndarray) -> None:
+    """Run the decision step's three kernels once on ``xyz (4, 3)`` float32 (as search, crops
+    and first crop of one observation; ``trackers.decision`` calls them with these dtypes)."""
+    n, i64, flag = len(xyz), np.int64, np.bool_
+    crops = np.stack([xyz, xyz])
+    real, layout, counts = np.ones(n, flag), np.zeros(n, i64), np.array([n, n, n], i64)
+    masks, layouts = np.ones((2, n), flag), np.zeros((2, n), i64)
+    one, half = np.ones(1, np.float32), np.ones(3, np.float32)
+    kernels.scene_kernel()(
+        xyz, xyz.view(np.int32), crops, crops.view(np.int32), one, real, np.empty_like(xyz),
+        layout, masks, np.empty_like(crops), layouts, counts,
+    )  # fmt: skip
+    sq = np.empty((2, n), np.float32)
+    kernels.still_kernel()(
+        xyz, layout, real, half, one, crops, counts[1:], layouts, masks, 5, sq, sq.copy()
+    )
+    kernels.crop_distance_kernel()(
+        xyz, layout, real, one, one, np.zeros((1, 3), np.float32), half, one, xyz, layout,
+        real, np.empty((1, n), np.float32), np.empty((1, n), np.float32), np.empty(1, i64),
+    )  # fmt: skip
