@@ -31,8 +31,10 @@ GETTERS = (
     "fps_kernel",
     "ball_kernel",
     "knn_kernel",
-    "distinct_kernel",
     "nearest_kernel",
+    "scene_kernel",
+    "still_kernel",
+    "crop_distance_kernel",
 )
 KEYS = ("template", "search", "size", "motion")
 

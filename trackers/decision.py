@@ -31,7 +31,10 @@ Cost (issue 41): one observation at a time (as the eval forward; a row's decisio
 depend on its batch), every candidate's crop and Chamfer distance in one vectorised pass, the
 first crop prepared once for all candidates, and copies of a point (the env's resampling
 repeats points) compared once (:func:`trackers.ops.distinct_points`); the distances are bit for
-bit those of :func:`trackers.ops.chamfer_distance` one candidate at a time.
+bit those of :func:`trackers.ops.chamfer_distance` one candidate at a time. On CPU float32 with
+the ``fast`` extra, three compiled passes per observation (:func:`trackers.kernels.scene_kernel`,
+:func:`~trackers.kernels.still_kernel`, :func:`~trackers.kernels.crop_distance_kernel`) give the
+same distances bit for bit.
 """
 
 from __future__ import annotations
@@ -187,7 +190,7 @@ def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
 @dataclass(frozen=True)
 class _SceneArrays:
     """A :class:`Scene` from one compiled pass (:func:`trackers.kernels.scene_kernel`): the
-    search's real rows ``(N,)``, its distinct points ``points[:u]`` and ``layout (N,)``, the
+    search's real rows ``(N,)``, its distinct points ``(U, 3)`` and ``layout (N,)``, the
     crops' masks ``(2, L)``, distinct points ``crop_points[k, :crop_counts[k]]`` and layouts
     ``(2, L)``, and the crop box's ``half`` extent ``(3,)`` and ``floor`` ``(1,)``."""
 
@@ -207,7 +210,8 @@ class Scene:
     ``size (3,)`` and the template crops ``(2, 256, 3)`` (first, previous), with the point sets
     both need computed once, when first asked (``act`` builds the scenes before the test and
     hands the moving ones to the re-ranking after the network). On CPU float32 with the
-    ``fast`` extra they come from one compiled pass (:attr:`arrays`), the same sets."""
+    ``fast`` extra they come from one compiled pass (:attr:`arrays`; the same sets), else from
+    the torch ops."""
 
     def __init__(self, search: torch.Tensor, size: torch.Tensor, crops: torch.Tensor) -> None:
         self.search, self.size, self.crops = search.detach(), size, crops
@@ -215,7 +219,7 @@ class Scene:
     @functools.cached_property
     def arrays(self) -> _SceneArrays | None:
         """The scene's point sets from :func:`trackers.kernels.scene_kernel`, or ``None`` (no
-        numba, not CPU float32): the properties below then run the torch ops."""
+        numba, not CPU float32)."""
         float32 = self.search.dtype == self.crops.dtype == torch.float32
         kernel = kernels.scene_kernel() if float32 and kernels.compilable(self.search) else None
         if kernel is None:
@@ -259,13 +263,6 @@ class Scene:
             return torch.from_numpy(self.arrays.crop_masks)
         return _above_ground(self.crops.reshape(1, -1, 3), self.size[None]).reshape(2, -1)
 
-    def _crop(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-        a = self.arrays
-        if a is not None:
-            points = a.crop_points[k, : a.crop_counts[k]]
-            return torch.from_numpy(points), torch.from_numpy(a.crop_layouts[k])
-        return ops.distinct_points(self.crops[k], self.crop_masks[k])
-
     @functools.cached_property
     def first(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The first crop's distinct points ``(F, 3)`` and their layout ``(256,)``."""
@@ -275,6 +272,13 @@ class Scene:
     def previous(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The previous crop's distinct points ``(P, 3)`` and their layout ``(256,)``."""
         return self._crop(1)
+
+    def _crop(self, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+        a = self.arrays
+        if a is not None:
+            points = a.crop_points[k, : a.crop_counts[k]]
+            return torch.from_numpy(points), torch.from_numpy(a.crop_layouts[k])
+        return ops.distinct_points(self.crops[k], self.crop_masks[k])
 
 
 def scenes(tracker: Tracker, batch: Mapping[str, torch.Tensor]) -> list[Scene]:

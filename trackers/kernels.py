@@ -1,10 +1,10 @@
 """Compiled CPU kernels for :mod:`trackers.ops` (numba, the ``fast`` extra).
 
 Each getter (:func:`hash_kernel`, :func:`fps_kernel`, :func:`ball_kernel`, :func:`knn_kernel`,
-:func:`distinct_kernel`, :func:`nearest_kernel`, and the decision step's
-:func:`scene_kernel`, :func:`still_kernel`, :func:`crop_distance_kernel`; built with
-:func:`envs.kernels.compiled`) compiles its kernel on first use (cached on disk by numba) and
-returns it, or ``None`` without numba: the ops then run their torch paths.
+:func:`nearest_kernel`, and the decision step's :func:`scene_kernel`, :func:`still_kernel` and
+:func:`crop_distance_kernel`; built with :func:`envs.kernels.compiled`) compiles its kernel on
+first use (cached on disk by numba) and returns it, or ``None`` without numba: the ops then run
+their torch paths.
 Every kernel computes what its torch path computes, the float operations in the same order
 (squared distances as ``pairwise_sqdist``: ``(dx^2 + dy^2) + dz^2`` in the points' dtype), so
 the results are the same bit for bit (tested against the torch paths in ``tests/test_ops.py``).
@@ -24,7 +24,6 @@ __all__ = [
     "ball_kernel",
     "compilable",
     "crop_distance_kernel",
-    "distinct_kernel",
     "fps_kernel",
     "hash_kernel",
     "knn_kernel",
@@ -213,49 +212,6 @@ def knn_kernel(njit: Callable) -> Callable:
 
 
 @compiled
-def distinct_kernel(njit: Callable) -> Callable:
-    """The compiled :func:`trackers.ops.distinct_points` of one cloud ``(bits (L, 3) int32: the
-    float32 points' bits, mask (L,) bool, first (L,) int64 out, layout (L,) int64 out) -> U``:
-    the masked points sorted by their (x, y) bits, a new distinct point wherever a point's
-    three bits differ from the one before; ``first[:U]`` holds each distinct point's row,
-    ``layout`` each masked point's distinct point (``U`` for the others). The grouping may put
-    copies' rows in another order than the torch path (its sort is not stable), which no
-    consumer reads: nearest distances and layout means do not depend on it."""
-    unmasked = np.iinfo(np.int64).max
-
-    @njit
-    def distinct_rows(bits, mask, first, layout):  # pragma: no cover - compiled
-        n = bits.shape[0]
-        key = np.empty(n, np.int64)
-        for i in range(n):
-            x, y = np.int64(bits[i, 0]), np.int64(bits[i, 1]) & np.int64(_MASK32)
-            key[i] = (x << 32) | y if mask[i] else unmasked
-        order = np.argsort(key, kind="mergesort")
-        u, prev = 0, -1
-        for j in range(n):
-            i = order[j]
-            if not mask[i]:
-                layout[i] = -1
-                continue
-            same = prev >= 0 and (
-                bits[i, 0] == bits[prev, 0]
-                and bits[i, 1] == bits[prev, 1]
-                and bits[i, 2] == bits[prev, 2]
-            )
-            if not same:
-                first[u] = i
-                u += 1
-            layout[i] = u - 1
-            prev = i
-        for i in range(n):
-            if layout[i] < 0:
-                layout[i] = u
-        return u
-
-    return distinct_rows
-
-
-@compiled
 def nearest_kernel(njit: Callable) -> Callable:
     """The compiled :func:`trackers.ops.nearest_distances` before its square roots: ``(a (K, U,
     3), a_in (K, U) bool, b (V, 3), a_near (K, U) out, b_near (K, V) out)``, every pair's
@@ -295,10 +251,12 @@ def scene_kernel(njit: Callable) -> Callable:
     int64 out, crop_masks (2, L) bool out, crop_points (2, L, 3) out, crop_layouts (2, L)
     int64 out, counts (3,) int64 out)``. ``real``: the search's rows that are not zero
     padding; ``crop_masks``: the crops' points above ``floor`` (as ``_above_ground``); then, as
-    :func:`distinct_kernel`, the distinct masked points of the search and of each crop
-    (``points[:counts[0]]``, ``crop_points[k, :counts[1 + k]]``) and each masked row's
-    distinct point (``layout``; the count for the others). Replaces three distinct-point
-    calls and ~20 small tensor ops per observation."""
+    :func:`trackers.ops.distinct_points`, the distinct masked points of the search and of each
+    crop (``points[:counts[0]]``, ``crop_points[k, :counts[1 + k]]``) and each masked row's
+    distinct point (``layout``; the count for the others): the masked points sorted by their
+    (x, y) bits, a new distinct point wherever a point's three bits differ from the one before.
+    The same sets as the torch ops (their order may differ, which no consumer reads), without
+    their ~40 small tensor ops per observation."""
     unmasked = np.iinfo(np.int64).max
 
     @njit
@@ -316,7 +274,7 @@ def scene_kernel(njit: Callable) -> Callable:
         crop_layouts,
         counts,
     ):  # pragma: no cover - compiled
-        def distinct(xyz, bits, mask, out, out_layout):  # distinct_kernel's loop, inlined
+        def distinct(xyz, bits, mask, out, out_layout):
             n = bits.shape[0]
             key = np.empty(n, np.int64)
             for i in range(n):
@@ -417,6 +375,9 @@ def still_kernel(njit: Callable) -> Callable:
             f = crop_counts[k]
             crop_near = np.full(f, inf, points.dtype)
             for q in range(u):
+                # nearest_kernel's loop, repeated (as in crop_distance_kernel): a kernel that
+                # called another compiled one would hold a dispatcher in its closure, which
+                # misses numba's disk cache in every process (see hash_kernel)
                 best = inf
                 if in_crop[q]:
                     px, py, pz = points[q, 0], points[q, 1], points[q, 2]

@@ -455,14 +455,8 @@ def distinct_points(points: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Ten
     bit for bit equal; the env's resampling repeats points many times) -> ``(U, 3)`` and the
     layout ``(L,)`` int64: the row of each masked point's copy (``U`` for the others). One sort
     by the (x, y) bits; copies a point of other z separates count twice, which is exact too.
-    On CPU with the ``fast`` extra one compiled loop (:func:`trackers.kernels.distinct_kernel`):
-    the same points and layout up to the order of the distinct rows, which no caller reads."""
-    kernel = kernels.distinct_kernel() if kernels.compilable(points) else None
-    if kernel is not None and points.dtype == torch.float32:
-        first, layout = torch.empty(2, len(mask), dtype=torch.long)
-        bits = points.detach().contiguous().view(torch.int32).numpy()
-        u = kernel(bits, mask.contiguous().numpy(), first.numpy(), layout.numpy())
-        return points.index_select(0, first[:u]), layout
+    (The decision step's compiled path computes the same sets in
+    :func:`trackers.kernels.scene_kernel`.)"""
     bits = points.contiguous().view(torch.int32)
     key = (bits[:, 0].long() << 32) | (bits[:, 1].long() & _MASK32)
     key = torch.where(mask, key, torch.iinfo(torch.int64).max)  # finite points sort first
@@ -527,7 +521,6 @@ def load_kernels() -> bool:
     farthest_point_sample(points, 2)
     ball_query_pairs(1.5, 2, points, points[:, :2])
     knn(2, points[:, :2], points)
-    distinct_points(points[0], torch.ones(4, dtype=torch.bool))
     nearest_distances(points[:, :2], None, points[0])
     _load_decision_kernels(points[0].numpy())
     return True
