@@ -232,6 +232,30 @@ def test_ball_query_pairs_are_the_real_slots_of_ball_query(radius, k, path, monk
     assert torch.equal(group, expected_group) and torch.equal(point, expected_point)
 
 
+@pytest.mark.parametrize("path", ["compiled", "grid", "dense"])
+def test_ball_query_pairs_leave_out_what_the_keep_masks_drop(path, monkeypatch):
+    """``keep_centres`` / ``keep_points`` give the pairs of the unmasked query filtered after
+    it: a hit left out still counts towards the ``k`` (checked to fail when the compiled scan
+    stops counting it), a centre left out lists nothing, centres without a hit keep their
+    ``(centre, point 0)`` pair."""
+    _ball_path(path, monkeypatch)
+    radius, k = 0.3, 8
+    xyz = _points(n=200, seed=6)
+    xyz[:, 100:160] = xyz[:, 40:100]  # copies, as the env's resampling
+    centres = torch.cat([xyz[:, :50], torch.full((2, 2, 3), 5.0)], dim=1)
+    g = torch.Generator().manual_seed(1)
+    keep_points = torch.rand(2, 200, generator=g) > 0.4
+    keep_points[:, 0] = True
+    keep_centres = torch.rand(2, 52, generator=g) > 0.3
+    group, point = ops.ball_query_pairs(radius, k, xyz, centres)
+    kept = keep_centres.flatten()[group] & keep_points.flatten()[point]
+    got = ops.ball_query_pairs(radius, k, xyz, centres, keep_centres, keep_points)
+    assert torch.equal(got[0], group[kept]) and torch.equal(got[1], point[kept])
+    assert 0 < len(got[0]) < kept.numel() - 20  # both masks leave pairs out
+    only_points = ops.ball_query_pairs(radius, k, xyz, centres, None, keep_points)
+    assert torch.equal(only_points[1], point[keep_points.flatten()[point]])
+
+
 def test_first_copy_matches_brute_force():
     g = torch.Generator().manual_seed(5)
     xyz = torch.randint(0, 3, (2, 60, 3), generator=g).float() * 0.5

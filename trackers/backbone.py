@@ -139,12 +139,12 @@ class SetAbstraction(nn.Module):
         groups, points = [], []
         group_start = point_start = 0
         for xyz, c, first in zip(xyzs, centres, firsts, strict=True):
-            group, point = ops.ball_query_pairs(self.radius, self.k, xyz, c)
-            if first is not None:  # first copies only (of the centre and of the hit)
-                n_pts = xyz.shape[1]
-                own = first == torch.arange(n_pts, device=first.device)  # (B, N)
-                keep = own.flatten()[point] & own[:, : c.shape[1]].flatten()[group]
-                group, point = group[keep], point[keep]
+            own = None  # first copies only (of the centre and of the hit)
+            if first is not None:
+                own = first == torch.arange(xyz.shape[1], device=first.device)  # (B, N)
+            group, point = ops.ball_query_pairs(
+                self.radius, self.k, xyz, c, None if own is None else own[:, : c.shape[1]], own
+            )
             groups.append(group + group_start)
             points.append(point + point_start)
             group_start += b * c.shape[1]

@@ -123,31 +123,38 @@ def fps_kernel(njit: Callable) -> Callable:
 
 @compiled
 def ball_kernel(njit: Callable) -> Callable:
-    """The compiled ball query ``(xyz (B, N, 3), centres (B, M, 3), r2, k) -> (group (P,),
-    point (P,))`` of :func:`trackers.ops.ball_query_pairs` (flat indices). Per centre it scans
-    the points in index order and stops at the ``k``-th hit, so the pairs are the same as the
-    torch paths'."""
+    """The compiled ball query ``(xyz (B, N, 3), centres (B, M, 3), r2, k, keep_centres (B, M)
+    bool, keep_points (B, N) bool) -> (group (P,), point (P,))`` of
+    :func:`trackers.ops.ball_query_pairs` (flat indices; an empty ``(0, 0)`` mask keeps all).
+    Per centre it scans the points in index order and stops at the ``k``-th hit, so the pairs
+    are the same as the torch paths'; a centre left out is not scanned at all, and a hit on a
+    point left out counts towards the ``k`` without being listed (the torch paths' filter after
+    the query)."""
 
     @njit
-    def ball_pairs(xyz, centres, r2, k):  # pragma: no cover - compiled
+    def ball_pairs(xyz, centres, r2, k, keep_centres, keep_points):  # pragma: no cover
         b, n, _ = xyz.shape
         m = centres.shape[1]
+        all_centres, all_points = keep_centres.shape[0] == 0, keep_points.shape[0] == 0
         group = np.empty(b * m * k, dtype=np.int64)
         point = np.empty(b * m * k, dtype=np.int64)
         p = 0
         for r in range(b):
             for i in range(m):
+                if not (all_centres or keep_centres[r, i]):
+                    continue
                 cx, cy, cz = centres[r, i, 0], centres[r, i, 1], centres[r, i, 2]
                 found = 0
                 for j in range(n):
                     dx, dy, dz = cx - xyz[r, j, 0], cy - xyz[r, j, 1], cz - xyz[r, j, 2]
                     if dx * dx + dy * dy + dz * dz < r2:
-                        group[p], point[p] = r * m + i, r * n + j
-                        p += 1
+                        if all_points or keep_points[r, j]:
+                            group[p], point[p] = r * m + i, r * n + j
+                            p += 1
                         found += 1
                         if found == k:
                             break
-                if found == 0:  # no hit: the pair (centre, point 0)
+                if found == 0 and (all_points or keep_points[r, 0]):  # no hit: (centre, 0)
                     group[p], point[p] = r * m + i, r * n
                     p += 1
         return group[:p], point[:p]

@@ -289,7 +289,12 @@ def ball_query(
 
 
 def ball_query_pairs(
-    radius: float, k: int, xyz: torch.Tensor, centres: torch.Tensor
+    radius: float,
+    k: int,
+    xyz: torch.Tensor,
+    centres: torch.Tensor,
+    keep_centres: torch.Tensor | None = None,
+    keep_points: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The real hits of :func:`ball_query` as flat pairs: ``xyz (B, N, 3)``, ``centres (B, M, 3)``
     -> ``group (P,)`` (flat centre index ``b * M + m``) and ``point (P,)`` (flat point index
@@ -297,6 +302,10 @@ def ball_query_pairs(
 
     Per centre the first ``k`` hits in index order - the slots of ``ball_query`` below its count;
     a centre without hits gets the one pair ``(centre, point 0)``, as its all-zero ``idx`` row.
+    ``keep_centres (B, M)`` / ``keep_points (B, N)`` bool (default: all) leave out the pairs of
+    the other centres and points, after the query: a hit left out still counts towards the
+    ``k`` (the backbone keeps the first copies of repeated points this way, and the compiled
+    scan skips the centres left out).
     On CPU with numba (the ``fast`` extra) a compiled scan that stops at each centre's ``k``-th
     hit (:func:`trackers.kernels.ball_kernel`). Otherwise small problems test every pair
     (:func:`_ball_dense`), larger ones only the points of the 3 x 3 grid cells around each
@@ -311,15 +320,30 @@ def ball_query_pairs(
         if kernel is not None and k > 0:
             points = xyz.detach().contiguous().numpy()
             r2 = points.dtype.type(radius * radius)  # the tensor's dtype, as torch's comparison
-            group, point = kernel(points, centres.detach().contiguous().numpy(), r2, k)
+            keeps = [  # (0, 0): keep all
+                _KEEP_ALL if keep is None else keep.contiguous().numpy()
+                for keep in (keep_centres, keep_points)
+            ]
+            group, point = kernel(points, centres.detach().contiguous().numpy(), r2, k, *keeps)
             return torch.from_numpy(group), torch.from_numpy(point)
         if b * m * n <= _DENSE_PAIRS:
             group, point = _ball_dense(radius, k, xyz, centres)
         else:
             group, point = _ball_grid(radius, k, xyz, centres)
-        return group, point + torch.div(group, m, rounding_mode="floor") * n
+        point = point + torch.div(group, m, rounding_mode="floor") * n
+        if keep_centres is None and keep_points is None:
+            return group, point
+        keep = torch.ones_like(group, dtype=torch.bool)
+        if keep_centres is not None:
+            keep &= keep_centres.flatten()[group]
+        if keep_points is not None:
+            keep &= keep_points.flatten()[point]
+        return group[keep], point[keep]
 
 
+#: The compiled ball query's mask for "keep every centre / point" (never written; writable as
+#: the masks from tensors are, so that numba compiles one signature).
+_KEEP_ALL = np.zeros((0, 0), np.bool_)
 #: :func:`ball_query_pairs` tests every pair up to this many (``B * M * N``), else grid cells.
 _DENSE_PAIRS = 1 << 18
 #: ... unless the grid's candidates are more than ``1 / _GRID_SHARE`` of the pairs: a candidate
