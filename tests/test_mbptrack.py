@@ -16,6 +16,7 @@ import trackers
 from envs.geometry import boxes_in_frame, points_in_box
 from envs.spec import MAX_MEMORY_FRAMES, MEMORY_KEYS, TEMPLATE_SCALE
 from envs.tracking_env import OBSERVATION_KEYS, TrackingEnv, make_toy_dataset
+from trackers import ops
 from trackers.mbptrack import MEMORY_OPTION, MBPTrack
 from trackers.mbptrack_layers import box_prior_offsets
 
@@ -446,6 +447,29 @@ def test_fast_eval_equals_plain_and_the_seed_cache_is_exact():
         model._seed_cache.clear()
         torch.testing.assert_close(model(batch)["scores"], moved["scores"], atol=0, rtol=0)
     assert not torch.allclose(moved["scores"], fast["scores"])
+
+
+def test_backbone_evaluates_each_distinct_point_once():
+    """The backbone's one-cloud eval path (``copies=True``) on a cloud the env would serve (a
+    few distinct points repeated to fill it): the same seeds as evaluating every centre, where
+    most centres are copies (checked to differ when a copy takes another centre's row)."""
+    model = _tiny(seed=3)
+    model.train()
+    model(_inputs(_act_batch(b=2, m=2, seed=4)))  # BatchNorm statistics off their defaults
+    model.eval()
+    g = torch.Generator().manual_seed(0)
+    distinct = torch.randn(90, 3, generator=g) * torch.tensor([1.5, 0.8, 0.4])
+    cloud = distinct[torch.randint(0, 90, (256,), generator=g)][None]
+    first = ops.first_copy(cloud)
+    assert (first == torch.arange(256)).float().mean() < 0.4  # mostly copies
+    with torch.no_grad():
+        all_xyz, all_feat = model.backbone(cloud)
+        xyz, feat = model.backbone(cloud, copies=True)
+        no_copies = model.backbone(distinct[None], copies=True)[1]
+    assert torch.equal(xyz, all_xyz)
+    torch.testing.assert_close(feat, all_feat, atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(no_copies, model.backbone(distinct[None])[1], atol=0, rtol=0)
+    assert not torch.allclose(feat, feat.roll(1, dims=1), atol=1e-3)  # distinct rows differ
 
 
 def test_memory_samples_are_deterministic_and_shaped_like_the_env(toy):

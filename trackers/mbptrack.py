@@ -235,11 +235,12 @@ class MBPTrack(Tracker):
         return tuple(torch.cat(p) for p in zip(*parts, strict=True))
 
     def _seeds(
-        self, cloud: torch.Tensor, order: torch.Tensor
+        self, cloud: torch.Tensor, order: torch.Tensor, copies: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Backbone seeds of ``cloud (F, N, 3)`` taken in ``order (F, N)``: xyz, features,
-        indices into the cloud (the seeds are the first points of the order)."""
-        xyz, feat = self.backbone(ops.gather(cloud, order))
+        indices into the cloud (the seeds are the first points of the order); ``copies``: the
+        backbone's one-cloud path that evaluates each distinct point once."""
+        xyz, feat = self.backbone(ops.gather(cloud, order), copies=copies)
         return xyz, feat, order[:, : xyz.shape[1]]
 
     @property
@@ -262,13 +263,13 @@ class MBPTrack(Tracker):
         alone). ``stamp=None`` (under autograd: cached tensors carry no graph) computes."""
         seed = int(self.config.sampling_seed)
         if stamp is None:
-            return self._seeds(cloud, ops.hash_order(cloud, seed))
+            return self._seeds(cloud, ops.hash_order(cloud, seed), copies=True)
         key = hashlib.blake2b(cloud.cpu().numpy().tobytes(), digest_size=16).digest()
         hit = self._seed_cache.get(key)
         if hit is not None and hit[0] == stamp:
             self._seed_cache.move_to_end(key)
             return hit[1]
-        seeds = self._seeds(cloud, ops.hash_order(cloud, seed))
+        seeds = self._seeds(cloud, ops.hash_order(cloud, seed), copies=True)
         self._seed_cache[key] = (stamp, seeds)
         if len(self._seed_cache) > SEED_CACHE_FRAMES:
             self._seed_cache.popitem(last=False)

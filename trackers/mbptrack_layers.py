@@ -62,16 +62,32 @@ class EdgeConv(nn.Module):
         self.mlp = MLP([2 * (in_channels + 3), *channels])
 
     def forward(
-        self, xyz: torch.Tensor, feat: torch.Tensor | None, n: int
+        self,
+        xyz: torch.Tensor,
+        feat: torch.Tensor | None,
+        n: int,
+        first: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """``xyz (B, N, 3)``, ``feat (B, N, C)`` or ``None`` -> centres ``(B, n, 3)`` and their
-        features ``(B, n, C')``."""
+        features ``(B, n, C')``. ``first (1, N)`` (one cloud: :func:`trackers.ops.first_copy`
+        of ``xyz``): only the first copy of each centre is evaluated and its copies take its
+        features: copies have the same coordinates and features, so the same neighbours (the
+        kNN breaks ties by index among all points) and the same edges."""
         f = xyz if feat is None else torch.cat([feat, xyz], dim=-1)
         centres = xyz[:, :n]
-        idx = knn_idx(self.k, centres, xyz)  # (B, n, k)
-        per_point, per_centre = _first_layer_split(self.mlp, f, f[:, :n], f.shape[-1])
+        if first is None:
+            own = slice(None, n)
+        else:  # the first copies among the centres (a first copy precedes its copies)
+            first = first[0, :n]
+            own_mask = first == torch.arange(n, device=first.device)
+            own = own_mask.nonzero()[:, 0]
+        idx = knn_idx(self.k, centres[:, own], xyz)  # (B, n or R, k)
+        per_point, per_centre = _first_layer_split(self.mlp, f, f[:, own], f.shape[-1])
         pre = _edge_sum(ops.group(per_point, idx), per_centre[:, :, None])
-        return centres, dense_max(self.mlp, pre, 2, torch.amax)
+        out = dense_max(self.mlp, pre, 2, torch.amax)
+        if first is not None:  # each centre's row: its first copy's among the evaluated
+            out = out.index_select(1, (own_mask.cumsum(0) - 1)[first])
+        return centres, out
 
 
 class DGCNNBackbone(nn.Module):
@@ -93,11 +109,18 @@ class DGCNNBackbone(nn.Module):
         """The seed feature width ``D``."""
         return self.fc.out_features
 
-    def forward(self, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, xyz: torch.Tensor, copies: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+        """``copies=True`` (one cloud, eval: the env repeats points to fill a crop, and on its
+        search regions most centres are copies): each distinct centre evaluated once
+        (:class:`EdgeConv`'s ``first``); the same values to float rounding."""
         n = xyz.shape[1]
+        first = ops.first_copy(xyz) if copies and xyz.shape[0] == 1 else None
+        if first is not None and bool((first == torch.arange(n, device=xyz.device)).all()):
+            first = None  # no copies: nothing to skip
         feat = None
         for layer, ratio in zip(self.layers, self.ratios, strict=True):
-            xyz, feat = layer(xyz, feat, max(1, n // ratio))
+            prefix = None if first is None else first[:, : xyz.shape[1]]  # layer inputs: prefixes
+            xyz, feat = layer(xyz, feat, max(1, n // ratio), prefix)
         return xyz, self.fc(feat)
 
 
