@@ -10,7 +10,9 @@ comes back as memory, and MBPTrack's seed cache computes every frame's backbone 
 tracker per repeat, warmed on the first three). The figure is the median process CPU time per
 ``act`` call with one torch thread, best of ``--repeats`` interleaved runs (P2B, MBPTrack, P2B,
 ...): on a shared machine process time moves far less with the load than wall time. Without
-``--mbptrack`` MBPTrack is untrained, at the slim and default widths.
+``--mbptrack`` MBPTrack is untrained, at the slim and default widths. A line per MBPTrack gives
+its backbone alone on the same search regions, every centre evaluated and each distinct point
+once (the one-cloud path ``act`` takes).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import copy
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -29,11 +32,28 @@ from bench_m2track import act_cpu_ms, observations  # noqa: E402 - same folder
 
 import trackers  # noqa: E402
 from envs.spec import MEMORY_KEYS  # noqa: E402
+from trackers import ops  # noqa: E402
 
 
 def fresh_act_cpu_ms(model, observations: list[dict[str, np.ndarray]]) -> float:
     """``bench_m2track.act_cpu_ms`` on a fresh copy of ``model`` (an empty seed cache)."""
     return act_cpu_ms(copy.deepcopy(model), observations)
+
+
+def backbone_cpu_ms(model, observations: list[dict[str, np.ndarray]], copies: bool) -> float:
+    """Median process CPU milliseconds of ``model``'s backbone on each observation's search
+    region in its eval (hash) order, with or without its one-cloud path that evaluates each
+    distinct point once (``DGCNNBackbone(copies=...)``)."""
+    seed = int(model.config.sampling_seed)
+    cpu = []
+    with torch.no_grad():
+        for obs in observations:
+            cloud = torch.from_numpy(np.asarray(obs["search"], np.float32))[None]
+            ordered = ops.gather(cloud, ops.hash_order(cloud, seed))
+            start = time.process_time()
+            model.backbone(ordered, copies=copies)
+            cpu.append(time.process_time() - start)
+    return float(np.median(cpu) * 1e3)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -59,6 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(args.repeats):  # interleaved: the machine's load hits every model alike
         for name, model in models:
             best[name] = min(best[name], fresh_act_cpu_ms(model, obs))
+    for name, model in models[1:]:  # the backbone alone, distinct points once or every centre
+        ms = {copies: min(backbone_cpu_ms(model, obs, copies) for _ in range(args.repeats))
+              for copies in (False, True)}  # fmt: skip
+        print(f"{name}: backbone {ms[False]:.2f} ms, each distinct point once {ms[True]:.2f} ms")
     base = best[models[0][0]]
     for name, ms in best.items():
         print(
