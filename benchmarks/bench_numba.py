@@ -33,7 +33,6 @@ GETTERS = (
     "knn_kernel",
     "nearest_kernel",
     "scene_kernel",
-    "still_kernel",
     "crop_distance_kernel",
 )
 KEYS = ("template", "search", "size", "motion")

@@ -328,7 +328,7 @@ def test_re_ranking_agrees_with_an_independent_choice_on_network_outputs():
 
 def test_compiled_decision_step_equals_the_torch_ops(recorded, monkeypatch):
     """The decision step's compiled passes (``trackers.kernels.scene_kernel``,
-    ``still_kernel``, ``crop_distance_kernel``) against the torch ops they replace, on the
+    ``crop_distance_kernel``) against the torch ops they replace, on the
     recorded observations and 24 candidate boxes each (moved up to 1.5 m, turned up to 0.5
     rad): the same point sets, and the same still-target and re-ranking distances, bit for
     bit."""

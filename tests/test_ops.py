@@ -518,7 +518,7 @@ import json
 from trackers import kernels, ops
 assert ops.load_kernels()
 getters = ["hash_kernel", "fps_kernel", "ball_kernel", "knn_kernel", "nearest_kernel",
-           "scene_kernel", "still_kernel", "crop_distance_kernel"]
+           "scene_kernel", "crop_distance_kernel"]
 print(json.dumps({g: len(getattr(kernels, g)().stats.cache_misses) for g in getters}))
 """
 

@@ -32,9 +32,9 @@ depend on its batch), every candidate's crop and Chamfer distance in one vectori
 first crop prepared once for all candidates, and copies of a point (the env's resampling
 repeats points) compared once (:func:`trackers.ops.distinct_points`); the distances are bit for
 bit those of :func:`trackers.ops.chamfer_distance` one candidate at a time. On CPU float32 with
-the ``fast`` extra, three compiled passes per observation (:func:`trackers.kernels.scene_kernel`,
-:func:`~trackers.kernels.still_kernel`, :func:`~trackers.kernels.crop_distance_kernel`) give the
-same distances bit for bit.
+the ``fast`` extra, compiled passes (:func:`trackers.kernels.scene_kernel` once per
+observation, :func:`~trackers.kernels.crop_distance_kernel` per template crop measured against)
+give the same distances bit for bit.
 """
 
 from __future__ import annotations
@@ -191,7 +191,8 @@ def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
 class _SceneArrays:
     """A :class:`Scene` from one compiled pass (:func:`trackers.kernels.scene_kernel`): the
     search's real rows ``(N,)``, its distinct points ``(U, 3)`` and ``layout (N,)``, the
-    crops' masks ``(2, L)``, distinct points ``crop_points[k, :crop_counts[k]]`` and layouts
+    crops' masks ``(2, L)`` (``crop_masked[k]`` rows each), distinct points
+    ``crop_points[k, :crop_counts[k]]`` and layouts
     ``(2, L)``, and the crop box's ``half`` extent ``(3,)`` and ``floor`` ``(1,)``."""
 
     real: np.ndarray
@@ -201,6 +202,7 @@ class _SceneArrays:
     crop_points: np.ndarray
     crop_layouts: np.ndarray
     crop_counts: np.ndarray
+    crop_masked: np.ndarray
     half: np.ndarray
     floor: np.ndarray
 
@@ -231,14 +233,14 @@ class Scene:
         real, layout = np.empty(n, np.bool_), np.empty(n, np.int64)
         points, crop_points = np.empty_like(search), np.empty_like(crops)
         crop_masks, crop_layouts = np.empty((2, length), np.bool_), np.empty((2, length), np.int64)
-        counts = np.empty(3, np.int64)
+        counts = np.empty(5, np.int64)
         kernel(
             search, search.view(np.int32), crops, crops.view(np.int32), floor, real, points,
             layout, crop_masks, crop_points, crop_layouts, counts,
         )  # fmt: skip
         return _SceneArrays(
             real, points[: counts[0]], layout, crop_masks, crop_points, crop_layouts,
-            counts[1:], half, floor,
+            counts[1:3], counts[3:], half, floor,
         )  # fmt: skip
 
     @functools.cached_property
@@ -333,7 +335,7 @@ def still_distances(scene: Scene) -> torch.Tensor | None:
     """The symmetric Chamfer distances ``(2,)`` of the reference box's crop of the search to
     the first and the previous crop, in one pass; ``None`` where the test decides nothing (an
     empty search, or fewer than :data:`HOLD_MIN_POINTS` points in the box or a crop). Compiled
-    on CPU float32 with the ``fast`` extra (:func:`trackers.kernels.still_kernel`: the same
+    on CPU float32 with the ``fast`` extra (:func:`_still_distances_compiled`: the same
     distances at the same rows, so the same square roots and row sums, bit for bit)."""
     if scene.arrays is not None:
         return _still_distances_compiled(scene.arrays)
@@ -359,19 +361,13 @@ def still_distances(scene: Scene) -> torch.Tensor | None:
 
 
 def _still_distances_compiled(a: _SceneArrays) -> torch.Tensor | None:
-    n, length = len(a.real), a.crop_masks.shape[1]
-    search_sq = np.empty((2, n), a.points.dtype)
-    crop_sq = np.empty((2, length), a.points.dtype)
-    boxed = kernels.still_kernel()(
-        a.points, a.layout, a.real, a.half, a.floor, a.crop_points, a.crop_counts,
-        a.crop_layouts, a.crop_masks, HOLD_MIN_POINTS, search_sq, crop_sq,
-    )  # fmt: skip
-    if boxed < 0:
+    """:func:`still_distances` compiled: the reference box (the zero action, where the crop is
+    the search's points as they are) measured against both crops, as the re-ranking measures
+    its candidates (:func:`_compiled_crop_distances`)."""
+    if (a.crop_masked < HOLD_MIN_POINTS).any():
         return None
-    masked = torch.from_numpy(a.crop_masks).sum(1)
-    crop_to_search = torch.from_numpy(crop_sq).sqrt_().sum(1) / masked
-    search_to_crop = torch.from_numpy(search_sq).sqrt_().sum(1) / torch.tensor([boxed, boxed])
-    return 0.5 * (crop_to_search + search_to_crop)
+    distances, in_box = _compiled_crop_distances(a, torch.zeros(1, 7), crops=2)
+    return None if in_box[0] < HOLD_MIN_POINTS else distances[:, 0]
 
 
 def choose_action(
@@ -467,12 +463,8 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
         return inf
     a = scene.arrays
     if a is not None and boxes.dtype == torch.float32:
-        crop_sq, first_sq, in_box_count = _crop_distances_compiled(a, boxes)
-        masked = torch.full_like(in_box_count, int(np.count_nonzero(a.crop_masks[0])))
-        crop_to_first = crop_sq.sqrt_().sum(1) / in_box_count
-        first_to_crop = first_sq.sqrt_().sum(1) / masked
-        distance = 0.5 * (crop_to_first + first_to_crop)
-        return torch.where(in_box_count >= HOLD_MIN_POINTS, distance, inf)
+        distances, in_box = _compiled_crop_distances(a, boxes, crops=1)
+        return torch.where(in_box >= HOLD_MIN_POINTS, distances[0], inf)
     (points, layout), (first, first_layout) = scene.points, scene.first
     crops = _crops_and_nearest(scene.size, points, first, boxes)
     if crops is None:  # no candidate's crop holds a point
@@ -486,23 +478,31 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
     return torch.where(in_box.sum(1) >= HOLD_MIN_POINTS, distance, inf)
 
 
-def _crop_distances_compiled(
-    a: _SceneArrays, boxes: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Each candidate box's squared nearest distances at the search's rows its crop holds
-    ``(C, N)`` and at the first crop's masked rows ``(C, L)`` (0 elsewhere), and how many rows
-    each crop holds ``(C,)`` int64 (:func:`trackers.kernels.crop_distance_kernel`)."""
+def _compiled_crop_distances(
+    a: _SceneArrays, boxes: torch.Tensor, crops: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Chamfer distances of each candidate box's crop of the search to the first ``crops``
+    template crops (1: the first; 2: the first and the previous) ``(crops, C)`` and how many
+    search rows each candidate's crop holds ``(C,)`` int64 (a distance is not finite for an
+    empty crop): the squared nearest distances at the rows
+    (:func:`trackers.kernels.crop_distance_kernel`), then torch's square roots and row sums, as
+    :func:`trackers.ops.layout_mean` sums them, so the same means bit for bit."""
     c, n, length = len(boxes), len(a.real), a.crop_masks.shape[1]
-    crop_sq = np.empty((c, n), np.float32)
-    first_sq = np.empty((c, length), np.float32)
-    in_box_count = np.empty(c, np.int64)
+    search_sq = np.empty((crops, c, n), np.float32)
+    crop_sq = np.empty((crops, c, length), np.float32)
+    in_box = np.empty(c, np.int64)
     yaw = boxes[:, 6]
     kernels.crop_distance_kernel()(
         a.points, a.layout, a.real, torch.cos(yaw).numpy(), torch.sin(yaw).numpy(),
-        boxes[:, :3].contiguous().numpy(), a.half, a.floor, a.crop_points[0, : a.crop_counts[0]],
-        a.crop_layouts[0], a.crop_masks[0], crop_sq, first_sq, in_box_count,
+        boxes[:, :3].contiguous().numpy(), a.half, a.floor, a.crop_points[:crops],
+        a.crop_counts[:crops], a.crop_layouts[:crops], a.crop_masks[:crops], search_sq, crop_sq,
+        in_box,
     )  # fmt: skip
-    return torch.from_numpy(crop_sq), torch.from_numpy(first_sq), torch.from_numpy(in_box_count)
+    counts = torch.from_numpy(in_box)
+    masked = torch.from_numpy(a.crop_masked[:crops, None])
+    search_to_crop = torch.from_numpy(search_sq).sqrt_().sum(2) / counts
+    crop_to_search = torch.from_numpy(crop_sq).sqrt_().sum(2) / masked
+    return 0.5 * (search_to_crop + crop_to_search), counts
 
 
 def _crops_and_nearest(

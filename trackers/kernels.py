@@ -1,7 +1,7 @@
 """Compiled CPU kernels for :mod:`trackers.ops` (numba, the ``fast`` extra).
 
 Each getter (:func:`hash_kernel`, :func:`fps_kernel`, :func:`ball_kernel`, :func:`knn_kernel`,
-:func:`nearest_kernel`, and the decision step's :func:`scene_kernel`, :func:`still_kernel` and
+:func:`nearest_kernel`, and the decision step's :func:`scene_kernel` and
 :func:`crop_distance_kernel`; built with :func:`envs.kernels.compiled`) compiles its kernel on
 first use (cached on disk by numba) and returns it, or ``None`` without numba: the ops then run
 their torch paths.
@@ -29,7 +29,6 @@ __all__ = [
     "knn_kernel",
     "nearest_kernel",
     "scene_kernel",
-    "still_kernel",
 ]
 
 _MASK32 = 0xFFFFFFFF
@@ -256,8 +255,9 @@ def scene_kernel(njit: Callable) -> Callable:
     pass: ``(search (N, 3) float32, search_bits (N, 3) int32, crops (2, L, 3) float32,
     crop_bits (2, L, 3) int32, floor (1,), real (N,) bool out, points (N, 3) out, layout (N,)
     int64 out, crop_masks (2, L) bool out, crop_points (2, L, 3) out, crop_layouts (2, L)
-    int64 out, counts (3,) int64 out)``. ``real``: the search's rows that are not zero
-    padding; ``crop_masks``: the crops' points above ``floor`` (as ``_above_ground``); then, as
+    int64 out, counts (5,) int64 out)``. ``real``: the search's rows that are not zero
+    padding; ``crop_masks``: the crops' points above ``floor`` (as ``_above_ground``;
+    ``counts[3 + k]`` of them in crop ``k``); then, as
     :func:`trackers.ops.distinct_points`, the distinct masked points of the search and of each
     crop (``points[:counts[0]]``, ``crop_points[k, :counts[1 + k]]``) and each masked row's
     distinct point (``layout``; the count for the others): the masked points sorted by their
@@ -314,9 +314,11 @@ def scene_kernel(njit: Callable) -> Callable:
             real[i] = search[i, 0] != zero or search[i, 1] != zero or search[i, 2] != zero
         counts[0] = distinct(search, search_bits, real, points, layout)
         for k in range(2):
+            counts[3 + k] = 0
             for j in range(crops.shape[1]):
                 x, y, z = crops[k, j, 0], crops[k, j, 1], crops[k, j, 2]
                 crop_masks[k, j] = (x != zero or y != zero or z != zero) and z > floor[0]
+                counts[3 + k] += crop_masks[k, j]
             counts[1 + k] = distinct(
                 crops[k], crop_bits[k], crop_masks[k], crop_points[k], crop_layouts[k]
             )
@@ -325,104 +327,23 @@ def scene_kernel(njit: Callable) -> Callable:
 
 
 @compiled
-def still_kernel(njit: Callable) -> Callable:
-    """The still-target test's crops and nearest distances of one observation
-    (:func:`trackers.decision._still`): ``(points (U, 3), layout (N,), real (N,), half (3,),
-    floor (1,), crop_points (2, L, 3), crop_counts (2,), crop_layouts (2, L), crop_masks (2, L),
-    min_points, search_sq (2, N) out, crop_sq (2, L) out) -> boxed``. The distinct search
-    points inside the reference box scaled as ``_crop_mask`` tests it; ``boxed``: how many of
-    the search's rows they hold, or ``-1`` where that or either crop's count is under
-    ``min_points`` (the test decides nothing; the outputs are then unset). Otherwise, per crop
-    ``k``, the squared distances (as :func:`nearest_kernel`) from each boxed row to the crop's
-    nearest point, ``search_sq[k]``, and from each masked crop row to the nearest boxed point,
-    ``crop_sq[k]``, written at the rows (0 at the others): the caller's square roots and row
-    sums give :func:`trackers.ops.layout_mean`'s means bit for bit."""
-
-    @njit
-    def still_rows(
-        points,
-        layout,
-        real,
-        half,
-        floor,
-        crop_points,
-        crop_counts,
-        crop_layouts,
-        crop_masks,
-        min_points,
-        search_sq,
-        crop_sq,
-    ):  # pragma: no cover - compiled
-        zero, inf = points.dtype.type(0), points.dtype.type(np.inf)
-        u, n, length = points.shape[0], layout.shape[0], crop_layouts.shape[1]
-        in_crop = np.empty(u, np.bool_)
-        for q in range(u):
-            x, y, z = points[q, 0], points[q, 1], points[q, 2]
-            in_crop[q] = (
-                abs(x) <= half[0]
-                and abs(y) <= half[1]
-                and abs(z) <= half[2]
-                and (x != zero or y != zero or z != zero)
-                and z > floor[0]
-            )
-        boxed = 0
-        for i in range(n):
-            if real[i] and in_crop[layout[i]]:
-                boxed += 1
-        if boxed < min_points:
-            return -1
-        for k in range(2):
-            masked = 0
-            for j in range(length):
-                masked += crop_masks[k, j]
-            if masked < min_points:
-                return -1
-        search_near = np.empty(u, points.dtype)
-        for k in range(2):
-            f = crop_counts[k]
-            crop_near = np.full(f, inf, points.dtype)
-            for q in range(u):
-                # nearest_kernel's loop, repeated (as in crop_distance_kernel): a kernel that
-                # called another compiled one would hold a dispatcher in its closure, which
-                # misses numba's disk cache in every process (see hash_kernel)
-                best = inf
-                if in_crop[q]:
-                    px, py, pz = points[q, 0], points[q, 1], points[q, 2]
-                    for j in range(f):
-                        dx = crop_points[k, j, 0] - px
-                        dy = crop_points[k, j, 1] - py
-                        dz = crop_points[k, j, 2] - pz
-                        d = dx * dx + dy * dy + dz * dz
-                        if d < best:
-                            best = d
-                        if d < crop_near[j]:
-                            crop_near[j] = d
-                search_near[q] = best
-            for i in range(n):
-                boxed_row = real[i] and in_crop[layout[i]]
-                search_sq[k, i] = search_near[layout[i]] if boxed_row else zero
-            for j in range(length):
-                crop_sq[k, j] = crop_near[crop_layouts[k, j]] if crop_masks[k, j] else zero
-        return boxed
-
-    return still_rows
-
-
-@compiled
 def crop_distance_kernel(njit: Callable) -> Callable:
-    """The re-ranking's crops and nearest distances of one observation, every candidate box in
-    one pass (:func:`trackers.decision._crop_distances`): ``(points (U, 3), layout (N,), real
-    (N,), cos (C,), sin (C,), centres (C, 3), half (3,), floor (1,), first (F, 3), first_layout
-    (L,), first_mask (L,), crop_sq (C, N) out, first_sq (C, L) out, boxed (C,) int64 out)``.
-    Each distinct point in each candidate's frame with the float operations of
-    ``world_to_box_torch`` in their order (``c dx + s dy``, ``-s dx + c dy``, ``dz``), inside
-    the crop as ``_crop_mask`` tests it (``|x| <= half``, not the origin, ``z > floor``); then,
-    as :func:`nearest_kernel`, the squared distances of the crop's points to the first crop and
-    the minima both ways, written at the search's boxed rows (``crop_sq``) and the first crop's
-    masked rows (``first_sq``; ``inf`` for an empty crop), 0 at the others, and how many rows
-    each crop holds (``boxed``): the caller's square roots and row sums give
-    :func:`trackers.ops.layout_mean`'s means bit for bit, without its ~40 small tensor ops per
-    observation."""
+    """The decision step's crops and nearest distances of one observation against template
+    crops (the re-ranking's candidates against the first crop; the still-target test's
+    reference box against the first and the previous), every candidate box and crop in one
+    pass (:func:`trackers.decision._compiled_crop_distances`): ``(points (U, 3), layout (N,),
+    real (N,), cos (C,), sin (C,), centres (C, 3), half (3,), floor (1,), crops (T, L, 3),
+    crop_counts (T,), crop_layouts (T, L), crop_masks (T, L), search_sq (T, C, N) out,
+    crop_sq (T, C, L) out, boxed (C,) int64 out)``; template crop ``t``'s distinct points are
+    ``crops[t, :crop_counts[t]]``. Each distinct search point in each candidate's frame with
+    the float operations of ``world_to_box_torch`` in their order (``c dx + s dy``, ``-s dx + c
+    dy``, ``dz``), inside the candidate's crop as ``_crop_mask`` tests it (``|x| <= half``, not
+    the origin, ``z > floor``); then, as :func:`nearest_kernel`, the squared distances between
+    the crop's points and the template crop's, the minima both ways written at the search's
+    boxed rows (``search_sq``) and the template crop's masked rows (``crop_sq``; ``inf`` for
+    an empty crop), 0 at the others, and how many rows each candidate's crop holds
+    (``boxed``): the caller's square roots and row sums give :func:`trackers.ops.layout_mean`'s
+    means bit for bit, without its ~40 small tensor ops per observation."""
 
     @njit
     def crop_distances(
@@ -434,55 +355,65 @@ def crop_distance_kernel(njit: Callable) -> Callable:
         centres,
         half,
         floor,
-        first,
-        first_layout,
-        first_mask,
+        crops,
+        crop_counts,
+        crop_layouts,
+        crop_masks,
+        search_sq,
         crop_sq,
-        first_sq,
         boxed,
     ):  # pragma: no cover - compiled
-        c_count, n = crop_sq.shape
-        u, f, length = points.shape[0], first.shape[0], first_layout.shape[0]
+        t_count, c_count, n = search_sq.shape
+        u, length = points.shape[0], crop_layouts.shape[1]
         inf, zero = points.dtype.type(np.inf), points.dtype.type(0)
         in_crop = np.empty(u, np.bool_)
+        moved = np.empty((u, 3), points.dtype)  # the points in the candidate's frame
         near = np.empty(u, points.dtype)
-        first_near = np.empty(f, points.dtype)
+        crop_near = np.empty(crops.shape[1], points.dtype)
         for c in range(c_count):
             co, si, nsi = cos[c], sin[c], -sin[c]
-            first_near[:] = inf
             for i in range(u):
                 dx = points[i, 0] - centres[c, 0]
                 dy = points[i, 1] - centres[c, 1]
                 z = points[i, 2] - centres[c, 2]
                 x = co * dx + si * dy
                 y = nsi * dx + co * dy
-                inside = (
+                in_crop[i] = (
                     abs(x) <= half[0]
                     and abs(y) <= half[1]
                     and abs(z) <= half[2]
                     and (x != zero or y != zero or z != zero)
                     and z > floor[0]
                 )
-                in_crop[i] = inside
-                best = inf
-                if inside:
-                    for j in range(f):
-                        ex, ey, ez = x - first[j, 0], y - first[j, 1], z - first[j, 2]
-                        d = ex * ex + ey * ey + ez * ez
-                        if d < best:
-                            best = d
-                        if d < first_near[j]:
-                            first_near[j] = d
-                near[i] = best
+                moved[i, 0], moved[i, 1], moved[i, 2] = x, y, z
             count = 0
             for i in range(n):
                 if real[i] and in_crop[layout[i]]:
-                    crop_sq[c, i] = near[layout[i]]
                     count += 1
-                else:
-                    crop_sq[c, i] = zero
             boxed[c] = count
-            for j in range(length):
-                first_sq[c, j] = first_near[first_layout[j]] if first_mask[j] else zero
+            for t in range(t_count):
+                f = crop_counts[t]
+                crop_near[:f] = inf
+                for i in range(u):
+                    # nearest_kernel's loop, repeated: a kernel that called another compiled
+                    # one would hold a dispatcher in its closure, which misses numba's disk
+                    # cache in every process (see hash_kernel)
+                    best = inf
+                    if in_crop[i]:
+                        x, y, z = moved[i, 0], moved[i, 1], moved[i, 2]
+                        for j in range(f):
+                            ex, ey, ez = x - crops[t, j, 0], y - crops[t, j, 1], z - crops[t, j, 2]
+                            d = ex * ex + ey * ey + ez * ez
+                            if d < best:
+                                best = d
+                            if d < crop_near[j]:
+                                crop_near[j] = d
+                    near[i] = best
+                for i in range(n):
+                    boxed_row = real[i] and in_crop[layout[i]]
+                    search_sq[t, c, i] = near[layout[i]] if boxed_row else zero
+                for j in range(length):
+                    masked = crop_masks[t, j]
+                    crop_sq[t, c, j] = crop_near[crop_layouts[t, j]] if masked else zero
 
     return crop_distances

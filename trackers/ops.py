@@ -551,22 +551,19 @@ def load_kernels() -> bool:
 
 
 def _load_decision_kernels(xyz: np.ndarray) -> None:
-    """Run the decision step's three kernels once on ``xyz (4, 3)`` float32 (as search, crops
+    """Run the decision step's two kernels once on ``xyz (4, 3)`` float32 (as search, crops
     and first crop of one observation; ``trackers.decision`` calls them with these dtypes)."""
     n, i64, flag = len(xyz), np.int64, np.bool_
     crops = np.stack([xyz, xyz])
-    real, layout, counts = np.ones(n, flag), np.zeros(n, i64), np.array([n, n, n], i64)
+    real, layout, counts = np.ones(n, flag), np.zeros(n, i64), np.full(5, n, i64)
     masks, layouts = np.ones((2, n), flag), np.zeros((2, n), i64)
     one, half = np.ones(1, np.float32), np.ones(3, np.float32)
     kernels.scene_kernel()(
         xyz, xyz.view(np.int32), crops, crops.view(np.int32), one, real, np.empty_like(xyz),
         layout, masks, np.empty_like(crops), layouts, counts,
     )  # fmt: skip
-    sq = np.empty((2, n), np.float32)
-    kernels.still_kernel()(
-        xyz, layout, real, half, one, crops, counts[1:], layouts, masks, 5, sq, sq.copy()
-    )
     kernels.crop_distance_kernel()(
-        xyz, layout, real, one, one, np.zeros((1, 3), np.float32), half, one, xyz, layout,
-        real, np.empty((1, n), np.float32), np.empty((1, n), np.float32), np.empty(1, i64),
+        xyz, layout, real, one, one, np.zeros((1, 3), np.float32), half, one, crops,
+        counts[1:3], layouts, masks, np.empty((2, 1, n), np.float32),
+        np.empty((2, 1, n), np.float32), np.empty(1, i64),
     )  # fmt: skip
