@@ -360,13 +360,17 @@ def still_distances(scene: Scene) -> torch.Tensor | None:
     return 0.5 * (crop_to_search + search_to_crop)
 
 
+#: The reference box as a candidate in its own frame (the zero action): centre 0, yaw 0.
+_REFERENCE_BOX = torch.zeros(1, 7)
+
+
 def _still_distances_compiled(a: _SceneArrays) -> torch.Tensor | None:
     """:func:`still_distances` compiled: the reference box (the zero action, where the crop is
     the search's points as they are) measured against both crops, as the re-ranking measures
     its candidates (:func:`_compiled_crop_distances`)."""
     if (a.crop_masked < HOLD_MIN_POINTS).any():
         return None
-    distances, in_box = _compiled_crop_distances(a, torch.zeros(1, 7), crops=2)
+    distances, in_box = _compiled_crop_distances(a, _REFERENCE_BOX, crops=2)
     return None if in_box[0] < HOLD_MIN_POINTS else distances[:, 0]
 
 
@@ -442,13 +446,21 @@ def _rerank(
     boxes = torch.cat([candidates[..., :3], zeros, candidates[..., 3:]], dim=-1).detach()
     distance = torch.stack([_crop_distances(*row) for row in zip(observed, boxes, strict=True)])
     distance[:, 1:] += inference.rerank_margin_m
-    first_points = torch.stack([scene.crop_masks[0].sum() for scene in observed])
+    first_points = torch.tensor(  # the first crop's masked rows
+        [_masked_rows(scene, 0) for scene in observed], device=distance.device
+    )
     decides = (
         (first_points >= HOLD_MIN_POINTS)
         & torch.isfinite(distance).any(1)
         & torch.isfinite(proposals).all(-1).all(-1)
     )
     return candidates, top, distance.argmin(1), decides
+
+
+def _masked_rows(scene: Scene, crop: int) -> int:
+    """How many rows of template crop ``crop`` the tests read (above the ground)."""
+    a = scene.arrays
+    return int(a.crop_masked[crop]) if a is not None else int(scene.crop_masks[crop].sum())
 
 
 def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
@@ -458,13 +470,15 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
     candidate's frame, one pass for all (compiled on CPU float32 with the ``fast`` extra:
     :func:`trackers.kernels.crop_distance_kernel`, the same bits)."""
     inf = torch.full((len(boxes),), math.inf, dtype=scene.search.dtype, device=boxes.device)
+    a = scene.arrays
+    if a is not None and boxes.dtype == torch.float32:
+        if not (a.crop_masked[0] and len(a.points)):  # an empty first crop or search
+            return inf
+        distances, in_box = _compiled_crop_distances(a, boxes, crops=1)
+        return torch.where(in_box >= HOLD_MIN_POINTS, distances[0], inf)
     first_mask = scene.crop_masks[0]
     if not (bool(first_mask.any()) and bool(scene.real.any())):
         return inf
-    a = scene.arrays
-    if a is not None and boxes.dtype == torch.float32:
-        distances, in_box = _compiled_crop_distances(a, boxes, crops=1)
-        return torch.where(in_box >= HOLD_MIN_POINTS, distances[0], inf)
     (points, layout), (first, first_layout) = scene.points, scene.first
     crops = _crops_and_nearest(scene.size, points, first, boxes)
     if crops is None:  # no candidate's crop holds a point
