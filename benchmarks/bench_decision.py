@@ -10,9 +10,9 @@ interleaved, ``--repeats`` times each, best of them kept, so that both see the s
 
 prints ms per frame for ``act``, the network and ``act`` without the decision step's tests, the
 ratio act / network (issue 41's goal: <= 1.10), the step's share read as (act - plain) / network
-and timed alone (``trackers.decision.decide`` on the network's outputs, per network: the
-steadier reading on a shared machine, since the difference of two passes carries both passes'
-noise).
+and timed alone (``trackers.decision.decide`` on the network's outputs, per the network timed in
+the same pass, frame by frame in turn: the steadier reading on a shared machine, since the
+difference of two passes carries both passes' noise).
 Times are the thread's CPU time (``time.thread_time``; one torch thread does all the work), so
 that other processes on a shared machine inflate them less than wall time.
 Only the public ``trackers.load`` / ``act`` / ``eval_forward`` are read, so any checkout runs.
@@ -32,7 +32,7 @@ DATA = ROOT / "tests" / "data" / "decisions.npz"
 NAMES = ("p2b-kitti1-u", "bat-kitti1-u", "gpt-kitti1-u")
 
 # run in the checkout measured (its own ``trackers``): prints
-# {name: [act_ms, net_ms, plain_ms, step_ms]}
+# {name: [act_ms, net_ms, plain_ms, step_ms, step_net_ms]}
 WORKER = """
 import json, sys, time
 import numpy as np, torch
@@ -58,28 +58,37 @@ for name in names:
         per_frame(lambda i: model.act(obs[i]))  # warm-up
         act = per_frame(lambda i: model.act(obs[i]))
         net = per_frame(lambda i: model.eval_forward(batches[i]))
-        try:  # the decision step alone, on the network's outputs (checkouts that have it)
-            from trackers import decision
-            outputs = [model.eval_forward(b) for b in batches]
-            rule = model.inference
-            step = per_frame(lambda i: decision.decide(model, batches[i], outputs[i], rule))
+        try:  # the decision step alone, on the network's outputs (checkouts that have it),
+            from trackers import decision  # each frame's network and step timed in turn
+            rule, paired = model.inference, (float("inf"), float("nan"), float("nan"))
+            for _ in range(inner):
+                net_s = step_s = 0.0
+                for b in batches:
+                    start = time.thread_time()
+                    outputs = model.eval_forward(b)
+                    mid = time.thread_time()
+                    decision.decide(model, b, outputs, rule)
+                    net_s, step_s = net_s + mid - start, step_s + time.thread_time() - mid
+                paired = min(paired, (net_s + step_s, net_s, step_s))
+            step, step_net = paired[2] / len(obs) * 1e3, paired[1] / len(obs) * 1e3
         except (ImportError, AttributeError, TypeError):
-            step = float("nan")
+            step = step_net = float("nan")
         if hasattr(model, "inference"):  # trackers.decision
             model.inference = type(model.inference)()
         else:  # before it: the fields in the architecture config
             model.config.hold_chamfer_m, model.config.rerank_top_k = 0.0, 0
         plain = per_frame(lambda i: model.act(obs[i]))
-    out[name] = [act, net, plain, step]
+    out[name] = [act, net, plain, step, step_net]
 print(json.dumps(out))
 """
 
 
 def measure(tree: Path, names: list[str], inner: int) -> dict[str, list[float]]:
     """One worker process in checkout ``tree`` -> ``{name: [act_ms, net_ms, plain_ms,
-    step_ms]}`` (``plain``: ``act`` with the still-target test and the re-ranking off; ``step``:
-    ``trackers.decision.decide`` alone on the network's outputs, NaN in a checkout without
-    it)."""
+    step_ms, step_net_ms]}`` (``plain``: ``act`` with the still-target test and the re-ranking
+    off; ``step``: ``trackers.decision.decide`` alone on the network's outputs, and
+    ``step_net`` the network in the same pass, each frame's two timed in turn so that the
+    machine's drift hits both; NaN in a checkout without the step)."""
     env = {**os.environ, "PYTHONPATH": str(tree), "OMP_NUM_THREADS": "1"}
     done = subprocess.run(
         [sys.executable, "-c", WORKER, str(DATA), ",".join(names), str(inner)],
@@ -109,7 +118,7 @@ def main(argv: list[str] | None = None) -> None:
     for _ in range(args.repeats):
         for label, tree in trees.items():  # interleaved: both see the same load
             for name, times in measure(tree, names, args.inner).items():
-                old = best[label].get(name, [float("inf")] * 4)
+                old = best[label].get(name, [float("inf")] * 5)
                 best[label][name] = [min(a, b) for a, b in zip(old, times, strict=True)]
     print(f"batch-1 act vs network alone, ms/frame, 1 thread, best of {args.repeats} runs")
     print("(plain: act with the hold and the re-ranking off; act-plain: their difference per")
@@ -118,9 +127,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{header} {'act/network':>11} {'act-plain':>9} {'step':>6}")
     for name in names:
         for label in trees:
-            act, net, plain, step = best[label][name]
+            act, net, plain, step, step_net = best[label][name]
             row = f"{name:<16} {label:<9} {act:7.2f} {net:8.2f} {plain:7.2f}"
-            print(f"{row} {act / net:11.3f} {(act - plain) / net:9.3f} {step / net:6.3f}")
+            print(f"{row} {act / net:11.3f} {(act - plain) / net:9.3f} {step / step_net:6.3f}")
 
 
 if __name__ == "__main__":
