@@ -191,9 +191,9 @@ def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
 class _SceneArrays:
     """A :class:`Scene` from one compiled pass (:func:`trackers.kernels.scene_kernel`): the
     search's real rows ``(N,)``, its distinct points ``(U, 3)`` and ``layout (N,)``, the
-    crops' masks ``(2, L)`` (``crop_masked[k]`` rows each), distinct points
-    ``crop_points[k, :crop_counts[k]]`` and layouts
-    ``(2, L)``, and the crop box's ``half`` extent ``(3,)`` and ``floor`` ``(1,)``."""
+    crops' masks ``(2, L)`` (``crop_masked[k]`` rows each), distinct points ``crop_points[k,
+    :crop_counts[k]]`` and layouts ``(2, L)``, and the crop box's ``half`` extent ``(3,)`` and
+    ``floor`` ``(1,)``."""
 
     real: np.ndarray
     points: np.ndarray
