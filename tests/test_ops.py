@@ -515,8 +515,8 @@ def test_farthest_point_sample_equals_the_previous_implementation(compiled, monk
 
 _EVERY_KERNEL = """
 import json
-from trackers import kernels, ops
-assert ops.load_kernels()
+from trackers import decision, kernels, ops
+assert ops.load_kernels() and decision.load_kernels()
 getters = ["hash_kernel", "fps_kernel", "ball_kernel", "knn_kernel", "nearest_kernel",
            "scene_kernel", "crop_distance_kernel"]
 print(json.dumps({g: len(getattr(kernels, g)().stats.cache_misses) for g in getters}))
@@ -524,10 +524,10 @@ print(json.dumps({g: len(getattr(kernels, g)().stats.cache_misses) for g in gett
 
 
 def test_every_kernel_loads_from_numbas_disk_cache_in_a_new_process(tmp_path):
-    """``ops.load_kernels`` reaches all seven kernels (the first process compiles each), and a
-    second process compiles nothing: a closure that pickles differently per process (a
-    dispatcher) made the hash kernel miss numba's cache every time, ~1-3 s in every
-    `pointtrack eval` worker and a new cache file per run."""
+    """``ops.load_kernels`` and ``decision.load_kernels`` reach all seven kernels (the first
+    process compiles each), and a second process compiles nothing: a closure that pickles
+    differently per process (a dispatcher) made the hash kernel miss numba's cache every time,
+    ~1-3 s in every `pointtrack eval` worker and a new cache file per run."""
     if kernels.hash_kernel() is None:
         pytest.skip("numba is not installed (pip install 'pointtrack[fast]')")
     import json

@@ -206,7 +206,7 @@ class Backbone(nn.Module):
         ordered = [self._ordered(p, o) for p, o in zip(clouds, orders, strict=True)]
         xyzs, orders = [x for x, _ in ordered], [o for _, o in ordered]
         # copies of a point (the env pads small clouds) are evaluated once on the ragged path
-        firsts = [_copies(xyz) if ragged else None for xyz in xyzs]
+        firsts = [ops.first_copy_or_none(xyz) if ragged else None for xyz in xyzs]
         feats: list[torch.Tensor | None] = [None] * len(xyzs)
         ns = [xyz.shape[1] for xyz in xyzs]
         for layer in self.layers:
@@ -246,11 +246,3 @@ class Backbone(nn.Module):
             rank = rank * n + torch.arange(n, device=order.device)
             order = torch.gather(order, 1, rank.argsort(dim=1))
         return ops.gather(points, order), order
-
-
-def _copies(xyz: torch.Tensor) -> torch.Tensor | None:
-    """:func:`trackers.ops.first_copy` of ``xyz (B, N, 3)``, or ``None`` when it has no copies."""
-    first = ops.first_copy(xyz)
-    if bool((first == torch.arange(xyz.shape[1], device=xyz.device)).all()):
-        return None
-    return first

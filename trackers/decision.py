@@ -66,6 +66,7 @@ __all__ = [
     "clip_action",
     "decide",
     "keeps_box",
+    "load_kernels",
     "scenes",
     "split_inference",
     "template_crops",
@@ -172,18 +173,28 @@ def template_crops(tracker: Tracker, template: torch.Tensor) -> torch.Tensor:
     return template.reshape(template.shape[0], 2, template.shape[1] // 2, 3)
 
 
+def _floor(size: torch.Tensor) -> torch.Tensor:
+    """The lowest height the tests read, ``(..., 1)`` of box sizes ``(..., 3)``: the box's bottom
+    plus :data:`HOLD_GROUND_CLEARANCE_M` (box frame)."""
+    return -size[..., 2:] / 2 + HOLD_GROUND_CLEARANCE_M
+
+
+def _half_extent(size: torch.Tensor) -> torch.Tensor:
+    """Half the box scaled :data:`TEMPLATE_SCALE` (the template's crop), ``(..., 3)``."""
+    return size * (TEMPLATE_SCALE / 2)
+
+
 def _above_ground(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
     """``(B, ..., N)`` bool: the points ``(B, ..., N, 3)`` (box frame; zero rows are padding)
     at least :data:`HOLD_GROUND_CLEARANCE_M` above the bottom of the box of ``size (B, 3)``."""
     size = size.reshape(size.shape[0], *([1] * (points.dim() - 2)), 3)
-    floor = -size[..., 2] / 2 + HOLD_GROUND_CLEARANCE_M
-    return (points != 0).any(-1) & (points[..., 2] > floor)
+    return (points != 0).any(-1) & (points[..., 2] > _floor(size)[..., 0])
 
 
 def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
     """``(B, ..., N)`` bool: the points ``(B, ..., N, 3)`` of :func:`_above_ground` inside the
     box scaled :data:`TEMPLATE_SCALE` (the template's crop of them)."""
-    half = size.reshape(size.shape[0], *([1] * (points.dim() - 2)), 3) * (TEMPLATE_SCALE / 2)
+    half = _half_extent(size.reshape(size.shape[0], *([1] * (points.dim() - 2)), 3))
     return (points.abs() <= half).all(-1) & _above_ground(points, size)
 
 
@@ -227,8 +238,7 @@ class Scene:
         if kernel is None:
             return None
         search, crops = self.search.contiguous().numpy(), self.crops.contiguous().numpy()
-        half = (self.size * (TEMPLATE_SCALE / 2)).numpy()  # as _crop_mask computes them
-        floor = (-self.size[2:] / 2 + HOLD_GROUND_CLEARANCE_M).numpy()  # as _above_ground
+        half, floor = _half_extent(self.size).numpy(), _floor(self.size).numpy()
         n, length = len(search), crops.shape[1]
         real, layout = np.empty(n, np.bool_), np.empty(n, np.int64)
         points, crop_points = np.empty_like(search), np.empty_like(crops)
@@ -281,6 +291,20 @@ class Scene:
             points = a.crop_points[k, : a.crop_counts[k]]
             return torch.from_numpy(points), torch.from_numpy(a.crop_layouts[k])
         return ops.distinct_points(self.crops[k], self.crop_masks[k])
+
+
+def load_kernels() -> bool:
+    """Run the compiled passes once on a tiny observation through the still-target test and the
+    re-ranking's crops (numba's start and disk cache), e.g. in a parent before it forks
+    workers, as :func:`trackers.ops.load_kernels` does for the ops; ``False`` without numba."""
+    if kernels.scene_kernel() is None:
+        return False
+    search = torch.zeros(8, 3)
+    search[:, 0] = torch.arange(8.0) / 10  # enough points in the box and the crops to decide
+    scene = Scene(search, torch.full((3,), 4.0), search.expand(2, -1, -1))
+    still_distances(scene)
+    _crop_distances(scene, torch.zeros(2, 7))
+    return True
 
 
 def scenes(tracker: Tracker, batch: Mapping[str, torch.Tensor]) -> list[Scene]:

@@ -114,9 +114,7 @@ class DGCNNBackbone(nn.Module):
         search regions most centres are copies): each distinct centre evaluated once
         (:class:`EdgeConv`'s ``first``); the same values to float rounding."""
         n = xyz.shape[1]
-        first = ops.first_copy(xyz) if copies and xyz.shape[0] == 1 else None
-        if first is not None and bool((first == torch.arange(n, device=xyz.device)).all()):
-            first = None  # no copies: nothing to skip
+        first = ops.first_copy_or_none(xyz) if copies and xyz.shape[0] == 1 else None
         feat = None
         for layer, ratio in zip(self.layers, self.ratios, strict=True):
             prefix = None if first is None else first[:, : xyz.shape[1]]  # layer inputs: prefixes

@@ -32,6 +32,7 @@ __all__ = [
     "distinct_points",
     "farthest_point_sample",
     "first_copy",
+    "first_copy_or_none",
     "gather",
     "group",
     "hash_order",
@@ -207,6 +208,15 @@ def first_copy(xyz: torch.Tensor) -> torch.Tensor:
     starts[:, 1:] = (ordered[:, 1:] != ordered[:, :-1]).any(-1)
     run_start = torch.where(starts, pos, torch.zeros_like(pos)).cummax(dim=1).values
     return torch.empty_like(order).scatter_(1, order, order.gather(1, run_start))
+
+
+def first_copy_or_none(xyz: torch.Tensor) -> torch.Tensor | None:
+    """:func:`first_copy` of ``xyz (B, N, 3)``, or ``None`` when it has no copies (the
+    backbones' paths that evaluate each distinct point once then have nothing to skip)."""
+    first = first_copy(xyz)
+    if bool((first == torch.arange(xyz.shape[1], device=xyz.device)).all()):
+        return None
+    return first
 
 
 def unique_rows(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -546,24 +556,4 @@ def load_kernels() -> bool:
     ball_query_pairs(1.5, 2, points, points[:, :2])
     knn(2, points[:, :2], points)
     nearest_distances(points[:, :2], None, points[0])
-    _load_decision_kernels(points[0].numpy())
     return True
-
-
-def _load_decision_kernels(xyz: np.ndarray) -> None:
-    """Run the decision step's two kernels once on ``xyz (4, 3)`` float32 (as search, crops
-    and first crop of one observation; ``trackers.decision`` calls them with these dtypes)."""
-    n, i64, flag = len(xyz), np.int64, np.bool_
-    crops = np.stack([xyz, xyz])
-    real, layout, counts = np.ones(n, flag), np.zeros(n, i64), np.full(5, n, i64)
-    masks, layouts = np.ones((2, n), flag), np.zeros((2, n), i64)
-    one, half = np.ones(1, np.float32), np.ones(3, np.float32)
-    kernels.scene_kernel()(
-        xyz, xyz.view(np.int32), crops, crops.view(np.int32), one, real, np.empty_like(xyz),
-        layout, masks, np.empty_like(crops), layouts, counts,
-    )  # fmt: skip
-    kernels.crop_distance_kernel()(
-        xyz, layout, real, one, one, np.zeros((1, 3), np.float32), half, one, crops,
-        counts[1:3], layouts, masks, np.empty((2, 1, n), np.float32),
-        np.empty((2, 1, n), np.float32), np.empty(1, i64),
-    )  # fmt: skip

@@ -492,16 +492,18 @@ def _load_kernels_before_fork(tracker: Any) -> None:
     """The env's compiled scan index and a learned tracker's compiled point ops loaded here,
     once per process: every evaluation forks new workers (each eval seed, each ``select``
     candidate and world), and each would start numba and read its cache again
-    (:func:`envs.kernels.load_kernels`, :func:`trackers.ops.load_kernels`)."""
+    (:func:`envs.kernels.load_kernels`, :func:`trackers.ops.load_kernels`,
+    :func:`trackers.decision.load_kernels`)."""
     import torch
 
     from envs.kernels import load_kernels as load_env_kernels
 
     load_env_kernels()
     if isinstance(tracker, torch.nn.Module):
-        from trackers.ops import load_kernels
+        from trackers import decision, ops
 
-        load_kernels()
+        ops.load_kernels()
+        decision.load_kernels()
 
 
 def _run_vector(tracker, vec, tracklets, opts: _RunOptions):
