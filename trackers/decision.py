@@ -34,7 +34,8 @@ repeats points) compared once (:func:`trackers.ops.distinct_points`); the distan
 bit those of :func:`trackers.ops.chamfer_distance` one candidate at a time. On CPU float32 with
 the ``fast`` extra, compiled passes (:func:`trackers.kernels.scene_kernel` once per
 observation, :func:`~trackers.kernels.crop_distance_kernel` per template crop measured against)
-give the same distances bit for bit.
+give the same point sets and crops, and the same distances to float32 rounding (their sums run
+in float64), and the choice runs in numpy: ~30 small torch ops fewer per observation.
 """
 
 from __future__ import annotations
@@ -44,7 +45,7 @@ import math
 import numbers
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
 import torch
@@ -55,6 +56,8 @@ from trackers import kernels, ops
 
 if TYPE_CHECKING:
     from trackers.base import Tracker
+
+_Array = TypeVar("_Array", torch.Tensor, np.ndarray)
 
 __all__ = [
     "HOLD_GROUND_CLEARANCE_M",
@@ -155,7 +158,7 @@ def clip_action(action: torch.Tensor, max_action: Any) -> torch.Tensor:
     """``action (..., 4)`` clipped to ``[-max_action, max_action]`` per component (a NaN stays
     NaN)."""
     a_max = torch.as_tensor(max_action, device=action.device, dtype=action.dtype)
-    return torch.maximum(torch.minimum(action, a_max), -a_max)
+    return action.clamp(-a_max, a_max)
 
 
 def template_crops(tracker: Tracker, template: torch.Tensor) -> torch.Tensor:
@@ -173,14 +176,15 @@ def template_crops(tracker: Tracker, template: torch.Tensor) -> torch.Tensor:
     return template.reshape(template.shape[0], 2, template.shape[1] // 2, 3)
 
 
-def _floor(size: torch.Tensor) -> torch.Tensor:
-    """The lowest height the tests read, ``(..., 1)`` of box sizes ``(..., 3)``: the box's bottom
-    plus :data:`HOLD_GROUND_CLEARANCE_M` (box frame)."""
+def _floor(size: _Array) -> _Array:
+    """The lowest height the tests read, ``(..., 1)`` of box sizes ``(..., 3)`` (torch or numpy,
+    the same float32 bits): the box's bottom plus :data:`HOLD_GROUND_CLEARANCE_M` (box frame)."""
     return -size[..., 2:] / 2 + HOLD_GROUND_CLEARANCE_M
 
 
-def _half_extent(size: torch.Tensor) -> torch.Tensor:
-    """Half the box scaled :data:`TEMPLATE_SCALE` (the template's crop), ``(..., 3)``."""
+def _half_extent(size: _Array) -> _Array:
+    """Half the box scaled :data:`TEMPLATE_SCALE` (the template's crop), ``(..., 3)`` (torch or
+    numpy)."""
     return size * (TEMPLATE_SCALE / 2)
 
 
@@ -201,17 +205,20 @@ def _crop_mask(points: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
 @dataclass(frozen=True)
 class _SceneArrays:
     """A :class:`Scene` from one compiled pass (:func:`trackers.kernels.scene_kernel`): the
-    search's real rows ``(N,)``, its distinct points ``(U, 3)`` and ``layout (N,)``, the
-    crops' masks ``(2, L)`` (``crop_masked[k]`` rows each), distinct points ``crop_points[k,
-    :crop_counts[k]]`` and layouts ``(2, L)``, and the crop box's ``half`` extent ``(3,)`` and
+    search's real rows ``(N,)``, its distinct points ``(U, 3)``, ``layout (N,)`` and how many
+    rows each distinct point stands for, ``weights (U,)``; the crops' masks ``(2, L)``
+    (``crop_masked[k]`` rows each), distinct points ``crop_points[k, :crop_counts[k]]``,
+    layouts ``(2, L)`` and weights ``(2, L)``; and the crop box's ``half`` extent ``(3,)`` and
     ``floor`` ``(1,)``."""
 
     real: np.ndarray
     points: np.ndarray
     layout: np.ndarray
+    weights: np.ndarray
     crop_masks: np.ndarray
     crop_points: np.ndarray
     crop_layouts: np.ndarray
+    crop_weights: np.ndarray
     crop_counts: np.ndarray
     crop_masked: np.ndarray
     half: np.ndarray
@@ -238,19 +245,22 @@ class Scene:
         if kernel is None:
             return None
         search, crops = self.search.contiguous().numpy(), self.crops.contiguous().numpy()
-        half, floor = _half_extent(self.size).numpy(), _floor(self.size).numpy()
+        size = self.size.numpy()
+        half, floor = _half_extent(size), _floor(size)
         n, length = len(search), crops.shape[1]
-        real, layout = np.empty(n, np.bool_), np.empty(n, np.int64)
+        real, layout, weights = np.empty(n, np.bool_), np.empty(n, np.int64), np.empty(n, np.int64)
         points, crop_points = np.empty_like(search), np.empty_like(crops)
-        crop_masks, crop_layouts = np.empty((2, length), np.bool_), np.empty((2, length), np.int64)
+        crop_masks = np.empty((2, length), np.bool_)
+        crop_layouts, crop_weights = np.empty((2, 2, length), np.int64)
         counts = np.empty(5, np.int64)
         kernel(
             search, search.view(np.int32), crops, crops.view(np.int32), floor, real, points,
-            layout, crop_masks, crop_points, crop_layouts, counts,
+            layout, weights, crop_masks, crop_points, crop_layouts, crop_weights, counts,
         )  # fmt: skip
+        u = counts[0]
         return _SceneArrays(
-            real, points[: counts[0]], layout, crop_masks, crop_points, crop_layouts,
-            counts[1:3], counts[3:], half, floor,
+            real, points[:u], layout, weights[:u], crop_masks, crop_points, crop_layouts,
+            crop_weights, counts[1:3], counts[3:], half, floor,
         )  # fmt: skip
 
     @functools.cached_property
@@ -359,8 +369,8 @@ def still_distances(scene: Scene) -> torch.Tensor | None:
     """The symmetric Chamfer distances ``(2,)`` of the reference box's crop of the search to
     the first and the previous crop, in one pass; ``None`` where the test decides nothing (an
     empty search, or fewer than :data:`HOLD_MIN_POINTS` points in the box or a crop). Compiled
-    on CPU float32 with the ``fast`` extra (:func:`_still_distances_compiled`: the same
-    distances at the same rows, so the same square roots and row sums, bit for bit)."""
+    on CPU float32 with the ``fast`` extra (:func:`_still_distances_compiled`: the same crops,
+    the same distances to float32 rounding)."""
     if scene.arrays is not None:
         return _still_distances_compiled(scene.arrays)
     points, layout = scene.points
@@ -384,8 +394,9 @@ def still_distances(scene: Scene) -> torch.Tensor | None:
     return 0.5 * (crop_to_search + search_to_crop)
 
 
-#: The reference box as a candidate in its own frame (the zero action): centre 0, yaw 0.
-_REFERENCE_BOX = torch.zeros(1, 7)
+#: The reference box as a candidate in its own frame (the zero action): centre 0, yaw 0, as the
+#: compiled pass takes it (its yaw's cosine and sine, its centre).
+_REFERENCE_BOX = (np.ones(1, np.float32), np.zeros(1, np.float32), np.zeros((1, 3), np.float32))
 
 
 def _still_distances_compiled(a: _SceneArrays) -> torch.Tensor | None:
@@ -394,8 +405,8 @@ def _still_distances_compiled(a: _SceneArrays) -> torch.Tensor | None:
     its candidates (:func:`_compiled_crop_distances`)."""
     if (a.crop_masked < HOLD_MIN_POINTS).any():
         return None
-    distances, in_box = _compiled_crop_distances(a, _REFERENCE_BOX, crops=2)
-    return None if in_box[0] < HOLD_MIN_POINTS else distances[:, 0]
+    distances, in_box = _compiled_crop_distances(a, *_REFERENCE_BOX, crops=2)
+    return None if in_box[0] < HOLD_MIN_POINTS else torch.from_numpy(distances[:, 0])
 
 
 def choose_action(
@@ -415,13 +426,14 @@ def choose_action(
     :data:`HOLD_MIN_POINTS` points is out; where the first crop has fewer, or no candidate is
     left, or a proposal is not finite, the best action stands. Differentiable in the chosen
     proposal (not in the choice). ``observed``: the batch's :func:`scenes`, if built already."""
-    best = tracker.best_action(outputs)
     reranked = _rerank(tracker, batch, outputs, inference, max_action, observed)
     if reranked is None:
-        return best
+        return tracker.best_action(outputs)
     candidates, _, choice, decides = reranked
-    chosen = candidates[torch.arange(len(choice), device=choice.device), choice]
-    return torch.where(decides[:, None], chosen, best)
+    chosen = candidates.gather(1, choice[:, None, None].expand(-1, 1, 4))[:, 0]
+    if bool(decides.all()):  # the re-ranking decides every row (mostly): no best action
+        return chosen
+    return torch.where(decides[:, None], chosen, tracker.best_action(outputs))
 
 
 def chosen_proposal(
@@ -460,25 +472,20 @@ def _rerank(
     if k == 0:
         return None
     top = outputs["scores"].topk(k, dim=1).indices  # (B, K)
-    b = top.shape[0]
-    proposals = outputs["proposals"][torch.arange(b, device=top.device)[:, None], top]
+    proposals = outputs["proposals"].gather(1, top[..., None].expand(-1, -1, 4))
     candidates = torch.cat(  # (B, 1 + K, 4): the reference box first
         [torch.zeros_like(proposals[:, :1]), clip_action(proposals, max_action)], dim=1
     )
     observed = scenes(tracker, batch) if observed is None else observed
-    zeros = torch.zeros_like(candidates[..., :3])
-    boxes = torch.cat([candidates[..., :3], zeros, candidates[..., 3:]], dim=-1).detach()
-    distance = torch.stack([_crop_distances(*row) for row in zip(observed, boxes, strict=True)])
-    distance[:, 1:] += inference.rerank_margin_m
-    first_points = torch.tensor(  # the first crop's masked rows
-        [_masked_rows(scene, 0) for scene in observed], device=distance.device
-    )
-    decides = (
-        (first_points >= HOLD_MIN_POINTS)
-        & torch.isfinite(distance).any(1)
-        & torch.isfinite(proposals).all(-1).all(-1)
-    )
-    return candidates, top, distance.argmin(1), decides
+    rows = candidates.detach()  # the choice, in numpy: a few values a row, no autograd
+    distance = np.stack([_crop_distances(*row) for row in zip(observed, rows, strict=True)])
+    if inference.rerank_margin_m:
+        distance[:, 1:] += np.float32(inference.rerank_margin_m)
+    first_points = np.array([_masked_rows(scene, 0) for scene in observed]) >= HOLD_MIN_POINTS
+    finite = np.isfinite(proposals.detach().cpu().numpy()).all((1, 2))
+    decides = first_points & np.isfinite(distance).any(1) & finite
+    choice = torch.from_numpy(distance.argmin(1)).to(top.device)  # ties: the earlier
+    return candidates, top, choice, torch.from_numpy(decides).to(top.device)
 
 
 def _masked_rows(scene: Scene, crop: int) -> int:
@@ -487,23 +494,31 @@ def _masked_rows(scene: Scene, crop: int) -> int:
     return int(a.crop_masked[crop]) if a is not None else int(scene.crop_masks[crop].sum())
 
 
-def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
+def _crop_distances(scene: Scene, candidates: torch.Tensor) -> np.ndarray:
     """The Chamfer distance of each candidate box's crop of one observation's search to its
-    first crop, ``inf`` for a crop of fewer than :data:`HOLD_MIN_POINTS` points: boxes ``(C,
-    7)`` -> ``(C,)``. The search's distinct points (copies stay copies in every frame) in every
-    candidate's frame, one pass for all (compiled on CPU float32 with the ``fast`` extra:
-    :func:`trackers.kernels.crop_distance_kernel`, the same bits)."""
-    inf = torch.full((len(boxes),), math.inf, dtype=scene.search.dtype, device=boxes.device)
+    first crop, ``inf`` for a crop of fewer than :data:`HOLD_MIN_POINTS` points: candidates
+    ``(C, 4)`` (actions: the box moved by ``(dx, dy, dz, dyaw)`` in the search frame) ->
+    ``(C,)`` float32, in numpy (the re-ranking's choice reads a few values). The search's
+    distinct points (copies stay copies in every frame) in every candidate's frame, one pass
+    for all (compiled on CPU float32 with the ``fast`` extra:
+    :func:`trackers.kernels.crop_distance_kernel`)."""
+    inf = np.full(len(candidates), np.inf, np.float32)
     a = scene.arrays
-    if a is not None and boxes.dtype == torch.float32:
+    if a is not None and candidates.dtype == torch.float32:
         if not (a.crop_masked[0] and len(a.points)):  # an empty first crop or search
             return inf
-        distances, in_box = _compiled_crop_distances(a, boxes, crops=1)
-        return torch.where(in_box >= HOLD_MIN_POINTS, distances[0], inf)
+        yaw, centres = candidates[:, 3], np.ascontiguousarray(candidates[:, :3].numpy())
+        distances, in_box = _compiled_crop_distances(
+            a, torch.cos(yaw).numpy(), torch.sin(yaw).numpy(), centres, crops=1
+        )
+        distances[0, in_box < HOLD_MIN_POINTS] = np.inf
+        return distances[0]
     first_mask = scene.crop_masks[0]
     if not (bool(first_mask.any()) and bool(scene.real.any())):
         return inf
     (points, layout), (first, first_layout) = scene.points, scene.first
+    zeros = torch.zeros_like(candidates[:, :3])  # the boxes' sizes: no test reads them
+    boxes = torch.cat([candidates[:, :3], zeros, candidates[:, 3:]], 1)
     crops = _crops_and_nearest(scene.size, points, first, boxes)
     if crops is None:  # no candidate's crop holds a point
         return inf
@@ -512,35 +527,26 @@ def _crop_distances(scene: Scene, boxes: torch.Tensor) -> torch.Tensor:
     in_box &= scene.real
     crop_to_first = ops.layout_mean(crop_near, layout, in_box)
     first_to_crop = ops.layout_mean(first_near, first_layout, first_mask.expand(len(boxes), -1))
-    distance = 0.5 * (crop_to_first + first_to_crop)
-    return torch.where(in_box.sum(1) >= HOLD_MIN_POINTS, distance, inf)
+    distance = (0.5 * (crop_to_first + first_to_crop)).cpu().numpy()
+    return np.where(in_box.sum(1).cpu().numpy() >= HOLD_MIN_POINTS, distance, inf)
 
 
 def _compiled_crop_distances(
-    a: _SceneArrays, boxes: torch.Tensor, crops: int
-) -> tuple[torch.Tensor, torch.Tensor]:
+    a: _SceneArrays, cos: np.ndarray, sin: np.ndarray, centres: np.ndarray, crops: int
+) -> tuple[np.ndarray, np.ndarray]:
     """The Chamfer distances of each candidate box's crop of the search to the first ``crops``
-    template crops (1: the first; 2: the first and the previous) ``(crops, C)`` and how many
-    search rows each candidate's crop holds ``(C,)`` int64 (a distance is not finite for an
-    empty crop): the squared nearest distances at the rows
-    (:func:`trackers.kernels.crop_distance_kernel`), then torch's square roots and row sums, as
-    :func:`trackers.ops.layout_mean` sums them, so the same means bit for bit."""
-    c, n, length = len(boxes), len(a.real), a.crop_masks.shape[1]
-    search_sq = np.empty((crops, c, n), np.float32)
-    crop_sq = np.empty((crops, c, length), np.float32)
-    in_box = np.empty(c, np.int64)
-    yaw = boxes[:, 6]
+    template crops (1: the first; 2: the first and the previous) ``(crops, C)`` float32
+    (``inf`` for an empty crop) and how many search rows each candidate's crop holds ``(C,)``
+    int64, the boxes given by their yaws' ``cos (C,)``, ``sin (C,)`` and ``centres (C, 3)``
+    (:func:`trackers.kernels.crop_distance_kernel`: the torch ops' distances to float32
+    rounding)."""
+    distances = np.empty((crops, len(cos)), np.float32)
+    in_box = np.empty(len(cos), np.int64)
     kernels.crop_distance_kernel()(
-        a.points, a.layout, a.real, torch.cos(yaw).numpy(), torch.sin(yaw).numpy(),
-        boxes[:, :3].contiguous().numpy(), a.half, a.floor, a.crop_points[:crops],
-        a.crop_counts[:crops], a.crop_layouts[:crops], a.crop_masks[:crops], search_sq, crop_sq,
-        in_box,
+        a.points, a.weights, cos, sin, centres, a.half, a.floor, a.crop_points[:crops],
+        a.crop_counts[:crops], a.crop_weights[:crops], a.crop_masked[:crops], distances, in_box,
     )  # fmt: skip
-    counts = torch.from_numpy(in_box)
-    masked = torch.from_numpy(a.crop_masked[:crops, None])
-    search_to_crop = torch.from_numpy(search_sq).sqrt_().sum(2) / counts
-    crop_to_search = torch.from_numpy(crop_sq).sqrt_().sum(2) / masked
-    return 0.5 * (search_to_crop + crop_to_search), counts
+    return distances, in_box
 
 
 def _crops_and_nearest(
@@ -589,8 +595,8 @@ def decide(
         keep = keeps_box(tracker, batch, inference, observed)
     if action is None:
         action = choose_action(tracker, batch, outputs, inference, max_action, observed)
-    action = torch.where(torch.isfinite(action), action, math.nan)
-    if inference.min_motion_m > 0:  # the dead zone (NaN compares False: it stays NaN)
+    finite = action.abs() < math.inf  # torch.isfinite in two ops (it runs four)
+    if inference.min_motion_m > 0:  # the dead zone (inf and NaN compare False: they stay)
         keep = keep | (torch.linalg.vector_norm(action[:, :3], dim=1) < inference.min_motion_m)
-    action = torch.where(keep[:, None], torch.zeros_like(action), action)
+    action = torch.where(keep[:, None], 0.0, torch.where(finite, action, math.nan))
     return clip_action(action, max_action)

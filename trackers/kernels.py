@@ -7,7 +7,9 @@ first use (cached on disk by numba) and returns it, or ``None`` without numba: t
 their torch paths.
 Every kernel computes what its torch path computes, the float operations in the same order
 (squared distances as ``pairwise_sqdist``: ``(dx^2 + dy^2) + dz^2`` in the points' dtype), so
-the results are the same bit for bit (tested against the torch paths in ``tests/test_ops.py``).
+the results are the same bit for bit (tested against the torch paths in ``tests/test_ops.py``);
+the one exception, :func:`crop_distance_kernel`, sums its Chamfer means in float64 where torch
+sums float32 in its own order: the same crops, the same distances to float32 rounding.
 They run only on CPU float32 / float64 coordinates (:func:`compilable`).
 """
 
@@ -254,17 +256,24 @@ def scene_kernel(njit: Callable) -> Callable:
     """The decision step's view of one observation (:class:`trackers.decision.Scene`) in one
     pass: ``(search (N, 3) float32, search_bits (N, 3) int32, crops (2, L, 3) float32,
     crop_bits (2, L, 3) int32, floor (1,), real (N,) bool out, points (N, 3) out, layout (N,)
-    int64 out, crop_masks (2, L) bool out, crop_points (2, L, 3) out, crop_layouts (2, L)
-    int64 out, counts (5,) int64 out)``. ``real``: the search's rows that are not zero
-    padding; ``crop_masks``: the crops' points above ``floor`` (as ``_above_ground``;
-    ``counts[3 + k]`` of them in crop ``k``); then, as
+    int64 out, weights (N,) int64 out, crop_masks (2, L) bool out, crop_points (2, L, 3) out,
+    crop_layouts (2, L) int64 out, crop_weights (2, L) int64 out, counts (5,) int64 out)``.
+    ``real``: the search's rows that are not zero padding; ``crop_masks``: the crops' points
+    above ``floor`` (as ``_above_ground``; ``counts[3 + k]`` of them in crop ``k``); then, as
     :func:`trackers.ops.distinct_points`, the distinct masked points of the search and of each
-    crop (``points[:counts[0]]``, ``crop_points[k, :counts[1 + k]]``) and each masked row's
-    distinct point (``layout``; the count for the others): the masked points sorted by their
-    (x, y) bits, a new distinct point wherever a point's three bits differ from the one before.
-    The same sets as the torch ops (their order may differ, which no consumer reads), without
-    their ~40 small tensor ops per observation."""
-    unmasked = np.iinfo(np.int64).max
+    crop (``points[:counts[0]]``, ``crop_points[k, :counts[1 + k]]``), each masked row's
+    distinct point (``layout``; the count for the others) and how many masked rows each
+    distinct point stands for (``weights``, ``crop_weights``): the rows in order, a point new
+    where no earlier row has its three bits (an open-addressing hash table on them, one pass
+    where a sort took ~40 % of the kernel). The same sets as the torch ops (in order of first
+    row, where the torch ops sort; no consumer reads the order), without their ~40 small tensor
+    ops per observation."""
+    spread = (
+        np.uint64(0x9E3779B97F4A7C15),  # odd 64-bit constants: multiplicative hashing
+        np.uint64(0xC2B2AE3D27D4EB4F),
+        np.uint64(0x165667B19E3779F9),
+    )
+    m32 = np.uint64(_MASK32)
 
     @njit
     def scene_rows(
@@ -276,34 +285,44 @@ def scene_kernel(njit: Callable) -> Callable:
         real,
         points,
         layout,
+        weights,
         crop_masks,
         crop_points,
         crop_layouts,
+        crop_weights,
         counts,
     ):  # pragma: no cover - compiled
-        def distinct(xyz, bits, mask, out, out_layout):
-            n = bits.shape[0]
-            key = np.empty(n, np.int64)
+        def distinct(xyz, bits, mask, out, out_layout, out_weights):
+            n, shift = bits.shape[0], np.uint64(63)
+            while (np.uint64(1) << (np.uint64(64) - shift)) < 2 * n:  # a table of >= 2n slots
+                shift -= np.uint64(1)
+            slots = np.int64(1) << np.int64(np.uint64(64) - shift)
+            table = np.full(slots, -1, np.int64)  # each slot's distinct point, or -1
+            first = np.empty(n, np.int64)  # each distinct point's first row
+            u = 0
             for i in range(n):
-                x, y = np.int64(bits[i, 0]), np.int64(bits[i, 1]) & np.int64(_MASK32)
-                key[i] = (x << 32) | y if mask[i] else unmasked
-            order = np.argsort(key, kind="mergesort")
-            u, prev = 0, -1
-            for j in range(n):
-                i = order[j]
                 if not mask[i]:
                     out_layout[i] = -1
                     continue
-                same = prev >= 0 and (
-                    bits[i, 0] == bits[prev, 0]
-                    and bits[i, 1] == bits[prev, 1]
-                    and bits[i, 2] == bits[prev, 2]
-                )
-                if not same:
-                    out[u, 0], out[u, 1], out[u, 2] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-                    u += 1
-                out_layout[i] = u - 1
-                prev = i
+                key = np.uint64(bits[i, 0]) & m32
+                key = key * spread[0] ^ (np.uint64(bits[i, 1]) & m32) * spread[1]
+                key ^= (np.uint64(bits[i, 2]) & m32) * spread[2]
+                slot = np.int64(key >> shift)
+                while True:
+                    d = table[slot]
+                    if d < 0:  # a new point
+                        table[slot], first[u] = u, i
+                        out[u, 0], out[u, 1], out[u, 2] = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+                        out_layout[i], out_weights[u] = u, 1
+                        u += 1
+                        break
+                    r = first[d]
+                    if bits[r, 0] == bits[i, 0] and bits[r, 1] == bits[i, 1]:
+                        if bits[r, 2] == bits[i, 2]:  # a copy
+                            out_layout[i] = d
+                            out_weights[d] += 1
+                            break
+                    slot = (slot + 1) & (slots - 1)
             for i in range(n):
                 if out_layout[i] < 0:
                     out_layout[i] = u
@@ -312,7 +331,7 @@ def scene_kernel(njit: Callable) -> Callable:
         zero = search.dtype.type(0)
         for i in range(search.shape[0]):
             real[i] = search[i, 0] != zero or search[i, 1] != zero or search[i, 2] != zero
-        counts[0] = distinct(search, search_bits, real, points, layout)
+        counts[0] = distinct(search, search_bits, real, points, layout, weights)
         for k in range(2):
             counts[3 + k] = 0
             for j in range(crops.shape[1]):
@@ -320,36 +339,39 @@ def scene_kernel(njit: Callable) -> Callable:
                 crop_masks[k, j] = (x != zero or y != zero or z != zero) and z > floor[0]
                 counts[3 + k] += crop_masks[k, j]
             counts[1 + k] = distinct(
-                crops[k], crop_bits[k], crop_masks[k], crop_points[k], crop_layouts[k]
-            )
+                crops[k], crop_bits[k], crop_masks[k], crop_points[k], crop_layouts[k],
+                crop_weights[k],
+            )  # fmt: skip
 
     return scene_rows
 
 
 @compiled
 def crop_distance_kernel(njit: Callable) -> Callable:
-    """The decision step's crops and nearest distances of one observation against template
+    """The decision step's crops and Chamfer distances of one observation against template
     crops (the re-ranking's candidates against the first crop; the still-target test's
     reference box against the first and the previous), every candidate box and crop in one
-    pass (:func:`trackers.decision._compiled_crop_distances`): ``(points (U, 3), layout (N,),
-    real (N,), cos (C,), sin (C,), centres (C, 3), half (3,), floor (1,), crops (T, L, 3),
-    crop_counts (T,), crop_layouts (T, L), crop_masks (T, L), search_sq (T, C, N) out,
-    crop_sq (T, C, L) out, boxed (C,) int64 out)``; template crop ``t``'s distinct points are
-    ``crops[t, :crop_counts[t]]``. Each distinct search point in each candidate's frame with
-    the float operations of ``world_to_box_torch`` in their order (``c dx + s dy``, ``-s dx + c
-    dy``, ``dz``), inside the candidate's crop as ``_crop_mask`` tests it (``|x| <= half``, not
-    the origin, ``z > floor``); then, as :func:`nearest_kernel`, the squared distances between
-    the crop's points and the template crop's, the minima both ways written at the search's
-    boxed rows (``search_sq``) and the template crop's masked rows (``crop_sq``; ``inf`` for
-    an empty crop), 0 at the others, and how many rows each candidate's crop holds
-    (``boxed``): the caller's square roots and row sums give :func:`trackers.ops.layout_mean`'s
-    means bit for bit, without its ~40 small tensor ops per observation."""
+    pass (:func:`trackers.decision._compiled_crop_distances`): ``(points (U, 3), weights (U,),
+    cos (C,), sin (C,), centres (C, 3), half (3,), floor (1,), crops (T, L, 3), crop_counts
+    (T,), crop_weights (T, L), crop_masked (T,), distances (T, C) out, boxed (C,) int64
+    out)``: the search's distinct points and how many rows each stands for (``weights``,
+    :func:`scene_kernel`), template crop ``t``'s distinct points ``crops[t, :crop_counts[t]]``
+    with their weights, standing for ``crop_masked[t]`` rows. Each distinct search point in
+    each candidate's frame with the float operations of ``world_to_box_torch`` in their order
+    (``c dx + s dy``, ``-s dx + c dy``, ``dz``), inside the candidate's crop as ``_crop_mask``
+    tests it (``|x| <= half``, not the origin, ``z > floor``); then, as
+    :func:`nearest_kernel`, the squared distances between the crop's points and the template
+    crop's, and the symmetric Chamfer distance over rows as :func:`trackers.ops.layout_mean`
+    weighs it (the mean over the search's boxed rows of their nearest distances, and over the
+    template crop's masked rows, halved; ``inf`` for an empty crop), each distinct point
+    counted as often as its rows, and how many rows each candidate's crop holds (``boxed``).
+    The sums run in float64, so the distances equal the torch ops' to float32 rounding (their
+    sums' order is torch's own), without their ~40 small tensor ops per observation."""
 
     @njit
     def crop_distances(
         points,
-        layout,
-        real,
+        weights,
         cos,
         sin,
         centres,
@@ -357,21 +379,20 @@ def crop_distance_kernel(njit: Callable) -> Callable:
         floor,
         crops,
         crop_counts,
-        crop_layouts,
-        crop_masks,
-        search_sq,
-        crop_sq,
+        crop_weights,
+        crop_masked,
+        distances,
         boxed,
     ):  # pragma: no cover - compiled
-        t_count, c_count, n = search_sq.shape
-        u, length = points.shape[0], crop_layouts.shape[1]
+        t_count, c_count = distances.shape
+        u = points.shape[0]
         inf, zero = points.dtype.type(np.inf), points.dtype.type(0)
         in_crop = np.empty(u, np.bool_)
         moved = np.empty((u, 3), points.dtype)  # the points in the candidate's frame
-        near = np.empty(u, points.dtype)
         crop_near = np.empty(crops.shape[1], points.dtype)
         for c in range(c_count):
             co, si, nsi = cos[c], sin[c], -sin[c]
+            count = 0
             for i in range(u):
                 dx = points[i, 0] - centres[c, 0]
                 dy = points[i, 1] - centres[c, 1]
@@ -386,34 +407,37 @@ def crop_distance_kernel(njit: Callable) -> Callable:
                     and z > floor[0]
                 )
                 moved[i, 0], moved[i, 1], moved[i, 2] = x, y, z
-            count = 0
-            for i in range(n):
-                if real[i] and in_crop[layout[i]]:
-                    count += 1
+                if in_crop[i]:
+                    count += weights[i]
             boxed[c] = count
             for t in range(t_count):
                 f = crop_counts[t]
+                if count == 0 or crop_masked[t] == 0:  # an empty crop: no distance
+                    distances[t, c] = inf
+                    continue
                 crop_near[:f] = inf
+                to_crop = 0.0  # float64 sums of float32 square roots, weighted by rows
                 for i in range(u):
+                    if not in_crop[i]:
+                        continue
                     # nearest_kernel's loop, repeated: a kernel that called another compiled
                     # one would hold a dispatcher in its closure, which misses numba's disk
                     # cache in every process (see hash_kernel)
                     best = inf
-                    if in_crop[i]:
-                        x, y, z = moved[i, 0], moved[i, 1], moved[i, 2]
-                        for j in range(f):
-                            ex, ey, ez = x - crops[t, j, 0], y - crops[t, j, 1], z - crops[t, j, 2]
-                            d = ex * ex + ey * ey + ez * ez
-                            if d < best:
-                                best = d
-                            if d < crop_near[j]:
-                                crop_near[j] = d
-                    near[i] = best
-                for i in range(n):
-                    boxed_row = real[i] and in_crop[layout[i]]
-                    search_sq[t, c, i] = near[layout[i]] if boxed_row else zero
-                for j in range(length):
-                    masked = crop_masks[t, j]
-                    crop_sq[t, c, j] = crop_near[crop_layouts[t, j]] if masked else zero
+                    x, y, z = moved[i, 0], moved[i, 1], moved[i, 2]
+                    for j in range(f):
+                        ex, ey, ez = x - crops[t, j, 0], y - crops[t, j, 1], z - crops[t, j, 2]
+                        d = ex * ex + ey * ey + ez * ez
+                        if d < best:
+                            best = d
+                        if d < crop_near[j]:
+                            crop_near[j] = d
+                    to_crop += weights[i] * np.sqrt(best)
+                to_search = 0.0
+                for j in range(f):
+                    to_search += crop_weights[t, j] * np.sqrt(crop_near[j])
+                search_to_crop = points.dtype.type(to_crop / count)
+                crop_to_search = points.dtype.type(to_search / crop_masked[t])
+                distances[t, c] = points.dtype.type(0.5) * (search_to_crop + crop_to_search)
 
     return crop_distances
