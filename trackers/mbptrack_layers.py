@@ -154,7 +154,7 @@ class SharedAttention(nn.Module):
         bool (at least one True per row) -> two ``(B, N, D)``."""
         q, k = self._split(self.q(query)), self._split(self.k(key))
         logits = q @ k.transpose(-1, -2) / math.sqrt(q.shape[-1])  # (B, h, N, L)
-        if key_valid is not None:
+        if key_valid is not None and not bool(key_valid.all()):  # a full memory masks nothing
             logits = logits.masked_fill(~key_valid[:, None, None, :], -math.inf)
         attn = F.dropout(logits.softmax(dim=-1), self.dropout, self.training)
         outs = []
