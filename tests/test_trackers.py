@@ -324,6 +324,15 @@ def test_bad_observations_name_the_key(models, toy):
         bad = obs["template"].copy()
         bad[3, 1] = np.nan
         model.act(dict(obs, template=bad))
+    with pytest.raises(ValueError, match="search.*NaN or inf"):  # a tensor, checked by torch
+        bad = torch.from_numpy(obs["search"].copy())
+        bad[0, 2] = float("inf")
+        model.act(dict(obs, search=bad))
+    with pytest.raises(ValueError, match="motion.*NaN or inf"):  # finite in float64, not float32
+        model.act(dict(obs, motion=np.full(4, 1e39)))
+    np.testing.assert_array_equal(  # float64 arrays are read as float32
+        model.act({k: v.astype(np.float64) for k, v in obs.items()}), model.act(obs)
+    )
     with pytest.raises(ValueError, match="mixes single and batched"):
         model.act(dict(obs, search=obs["search"][None]))
     with pytest.raises(ValueError, match="batch size"):

@@ -146,7 +146,11 @@ def prepare_observation(
                 )
             # the values checked in numpy: a few microseconds, where torch's checks cost ~30 a
             # key in a batch-1 act
-            checked = np.ascontiguousarray(arr, dtype=np.float32)
+            if arr.dtype == np.float32:
+                checked = np.ascontiguousarray(arr)
+            else:  # a value beyond float32's range becomes inf, which the check below names
+                with np.errstate(over="ignore"):
+                    checked = np.ascontiguousarray(arr, dtype=np.float32)
             tensor = torch.from_numpy(checked)
         if tuple(tensor.shape) == shape:
             is_single = True
