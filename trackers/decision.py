@@ -313,7 +313,7 @@ def load_kernels() -> bool:
     search[:, 0] = torch.arange(8.0) / 10  # enough points in the box and the crops to decide
     scene = Scene(search, torch.full((3,), 4.0), search.expand(2, -1, -1))
     still_distances(scene)
-    _crop_distances(scene, torch.zeros(2, 7))
+    _crop_distances(scene, torch.zeros(2, 4))
     return True
 
 
