@@ -503,32 +503,31 @@ def _crop_distances(scene: Scene, candidates: torch.Tensor) -> np.ndarray:
     for all (compiled on CPU float32 with the ``fast`` extra:
     :func:`trackers.kernels.crop_distance_kernel`)."""
     inf = np.full(len(candidates), np.inf, np.float32)
+    if not (_masked_rows(scene, 0) and len(scene.points[0])):  # an empty first crop or search
+        return inf
     a = scene.arrays
     if a is not None and candidates.dtype == torch.float32:
-        if not (a.crop_masked[0] and len(a.points)):  # an empty first crop or search
-            return inf
         yaw, centres = candidates[:, 3], np.ascontiguousarray(candidates[:, :3].numpy())
         distances, in_box = _compiled_crop_distances(
             a, torch.cos(yaw).numpy(), torch.sin(yaw).numpy(), centres, crops=1
         )
-        distances[0, in_box < HOLD_MIN_POINTS] = np.inf
-        return distances[0]
-    first_mask = scene.crop_masks[0]
-    if not (bool(first_mask.any()) and bool(scene.real.any())):
-        return inf
-    (points, layout), (first, first_layout) = scene.points, scene.first
-    zeros = torch.zeros_like(candidates[:, :3])  # the boxes' sizes: no test reads them
-    boxes = torch.cat([candidates[:, :3], zeros, candidates[:, 3:]], 1)
-    crops = _crops_and_nearest(scene.size, points, first, boxes)
-    if crops is None:  # no candidate's crop holds a point
-        return inf
-    in_crop, crop_near, first_near = crops
-    in_box = in_crop.gather(1, layout.clamp(max=len(points) - 1).expand(len(boxes), -1))
-    in_box &= scene.real
-    crop_to_first = ops.layout_mean(crop_near, layout, in_box)
-    first_to_crop = ops.layout_mean(first_near, first_layout, first_mask.expand(len(boxes), -1))
-    distance = (0.5 * (crop_to_first + first_to_crop)).cpu().numpy()
-    return np.where(in_box.sum(1).cpu().numpy() >= HOLD_MIN_POINTS, distance, inf)
+        distance = distances[0]
+    else:
+        (points, layout), (first, first_layout) = scene.points, scene.first
+        zeros = torch.zeros_like(candidates[:, :3])  # the boxes' sizes: no test reads them
+        boxes = torch.cat([candidates[:, :3], zeros, candidates[:, 3:]], 1)
+        crops = _crops_and_nearest(scene.size, points, first, boxes)
+        if crops is None:  # no candidate's crop holds a point
+            return inf
+        in_crop, crop_near, first_near = crops
+        boxed = in_crop.gather(1, layout.clamp(max=len(points) - 1).expand(len(boxes), -1))
+        boxed &= scene.real
+        first_mask = scene.crop_masks[0].expand(len(boxes), -1)
+        crop_to_first = ops.layout_mean(crop_near, layout, boxed)
+        first_to_crop = ops.layout_mean(first_near, first_layout, first_mask)
+        distance = (0.5 * (crop_to_first + first_to_crop)).cpu().numpy()
+        in_box = boxed.sum(1).cpu().numpy()
+    return np.where(in_box >= HOLD_MIN_POINTS, distance, inf)
 
 
 def _compiled_crop_distances(
