@@ -195,6 +195,14 @@ def test_interrupted_run_resumes_from_its_checkpoint(tmp_path, data, monkeypatch
     trackers.load(out / "tracker.safetensors")
 
 
+def test_ppo_run_loads_the_compiled_kernels_before_its_clock(monkeypatch, tmp_path, data):
+    # steps/s measures the loop: numba's start (~0.8 s) belongs to the set-up, not the first reset
+    loaded: list[tuple[object, float]] = []
+    monkeypatch.setattr(ft, "load_kernels", lambda t: loaded.append((t, time.perf_counter())))
+    r = ft.PPORun(tiny_cfg(timesteps=16), tmp_path / "run", lambda: TrackingEnv(data))
+    assert [t for t, _ in loaded] == [r.policy.tracker] and loaded[0][1] <= r.t0
+
+
 def test_state_round_trips_policy_and_optimizer(tmp_path, data):
     out = tmp_path / "run"
     run(tiny_cfg(timesteps=16), out, data)

@@ -215,24 +215,28 @@ class MBPTrack(Tracker):
         self._seed_cache: OrderedDict[bytes, tuple[list, tuple[torch.Tensor, ...]]] = OrderedDict()
 
     def _frame_seeds(
-        self, clouds: torch.Tensor, generator: torch.Generator | None
+        self, clouds: torch.Tensor, generator: torch.Generator | None, stamp: list | None
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Backbone seeds of frames ``clouds (F, N, 3)``: xyz ``(F, S, 3)``, features ``(F, S,
         D)``, indices into each cloud ``(F, S)``. Training: random point orders (batched). Eval:
         hash orders (order invariant); on the fast path one frame at a time through
-        :meth:`_cached_seeds`, on the plain path batched."""
+        :meth:`_cached_seeds` (``stamp``: :meth:`_seed_stamp`, read once per forward), on the
+        plain path batched."""
         if self.training:
             gen = generator if generator is not None else self.generator
             return self._seeds(clouds, ops.random_order(*clouds.shape[:2], gen, clouds.device))
         if not self.fast_eval:
             return self._seeds(clouds, ops.hash_order(clouds, int(self.config.sampling_seed)))
-        stamp = (  # once per batch; under autograd nothing is cached
-            None
-            if torch.is_grad_enabled()
-            else [(t._version, t.data_ptr()) for t in self._backbone_tensors]
-        )
         parts = [self._cached_seeds(cloud[None], stamp) for cloud in clouds]
         return tuple(torch.cat(p) for p in zip(*parts, strict=True))
+
+    def _seed_stamp(self) -> list | None:
+        """The backbone weights' versions and addresses, the seed cache's check that they did
+        not change; ``None`` where nothing is cached (training, the plain eval path, and under
+        autograd, where cached tensors would carry no graph)."""
+        if self.training or not self.fast_eval or torch.is_grad_enabled():
+            return None
+        return [(t._version, t.data_ptr()) for t in self._backbone_tensors]
 
     def _seeds(
         self, cloud: torch.Tensor, order: torch.Tensor, copies: bool = False
@@ -289,8 +293,9 @@ class MBPTrack(Tracker):
         memory, boxes = batch["memory"], batch["memory_boxes"]
         b, m, n_m = memory.shape[:3]
         mem_cloud = memory[..., :3].reshape(b * m, n_m, 3)
-        xyz, feat, idx = self._frame_seeds(search, generator)
-        m_xyz, m_feat, m_idx = self._frame_seeds(mem_cloud, generator)
+        stamp = self._seed_stamp()
+        xyz, feat, idx = self._frame_seeds(search, generator, stamp)
+        m_xyz, m_feat, m_idx = self._frame_seeds(mem_cloud, generator, stamp)
         s = m_xyz.shape[1]
         m_mask = torch.gather(memory[..., 3].reshape(b * m, n_m), 1, m_idx).reshape(b, m * s)
         # the memory seeds in the current frame: each frame's points sit in its box's frame

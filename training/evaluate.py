@@ -471,12 +471,14 @@ def _run_sharded(tracker, env, indices: list[int], opts: _RunOptions, tick) -> l
     """The tracklets over ``opts.workers`` forked processes, longest first (balance); each
     worker resets its first episode with the seed, as :func:`_run_single` does (the episodes
     are seeded per tracklet, so this only keeps ``env.np_random`` the same)."""
+    from training.loading import load_kernels
     from training.parallel import map_forked
 
     lengths = env.unwrapped.tracklet_lengths
     ids = [t.tracklet_id for t in env.unwrapped.tracklets]
     order = sorted(indices, key=lambda i: (-lengths[i], i))
-    _load_kernels_before_fork(tracker)
+    # workers inherit them: each would otherwise start numba and read its cache again
+    load_kernels(tracker)
 
     def one(index: int) -> _Episode:
         return _run_episode(tracker, env, index, opts.seed, opts.record_boxes)
@@ -486,24 +488,6 @@ def _run_sharded(tracker, env, indices: list[int], opts: _RunOptions, tick) -> l
     )
     by_index = dict(zip(order, episodes, strict=True))
     return [by_index[i] for i in indices]
-
-
-def _load_kernels_before_fork(tracker: Any) -> None:
-    """The env's compiled scan index and a learned tracker's compiled point ops loaded here,
-    once per process: every evaluation forks new workers (each eval seed, each ``select``
-    candidate and world), and each would start numba and read its cache again
-    (:func:`envs.kernels.load_kernels`, :func:`trackers.ops.load_kernels`,
-    :func:`trackers.decision.load_kernels`)."""
-    import torch
-
-    from envs.kernels import load_kernels as load_env_kernels
-
-    load_env_kernels()
-    if isinstance(tracker, torch.nn.Module):
-        from trackers import decision, ops
-
-        ops.load_kernels()
-        decision.load_kernels()
 
 
 def _run_vector(tracker, vec, tracklets, opts: _RunOptions):

@@ -12,7 +12,7 @@ from trackers.registry import find_checkpoint
 from training.checkpoint import is_training_checkpoint, tracker_from_checkpoint
 from training.residual_file import is_residual_file
 
-__all__ = ["UntrainedTrackerError", "load_tracker"]
+__all__ = ["UntrainedTrackerError", "load_kernels", "load_tracker"]
 
 
 class UntrainedTrackerError(ValueError):
@@ -51,3 +51,21 @@ def load_tracker(name_or_path: str, *, untrained: bool = False, seed: int = 0) -
             "best.pt), or pass --untrained to use the random initialisation on purpose"
         )
     return tracker
+
+
+def load_kernels(tracker: Any) -> None:
+    """The env's compiled scan index and a learned tracker's compiled point ops loaded now
+    (numba's start and its disk cache, ~0.8 s of CPU once per process), in a command's set-up:
+    before an evaluation forks its workers (each eval seed, ``select`` candidate and world
+    forks new ones, which inherit the kernels instead of each loading them again) and before a
+    fine-tune's clock starts (its steps/s measures the loop, not the process's start-up).
+    Nothing happens without numba (:func:`envs.kernels.load_kernels`,
+    :func:`trackers.ops.load_kernels`, :func:`trackers.decision.load_kernels`)."""
+    from envs.kernels import load_kernels as load_env_kernels
+
+    load_env_kernels()
+    if isinstance(tracker, torch.nn.Module):
+        from trackers import decision, ops
+
+        ops.load_kernels()
+        decision.load_kernels()

@@ -66,7 +66,7 @@ from trackers.registry import find_checkpoint
 from training.allocator import retain_freed_memory
 from training.checkpoint import parent_entry
 from training.evaluate import env_options_for, evaluate, observation_keys_for
-from training.loading import load_tracker
+from training.loading import load_kernels, load_tracker
 from training.parallel import torch_threads, usable_cores
 from training.provenance import check_finetune_categories, finetune_provenance
 from training.rl.config import RESUMABLE, FinetuneConfig, FinetuneError, NonFiniteError
@@ -331,6 +331,8 @@ class PPORun:
             self.model._n_updates = int(resume_meta["n_updates"])
         self.last_good = steps0 if state is not None else None
         self.counted_at = steps0  # num_timesteps of the last update counted by after_update
+        # start-up, like the imports and the model build: the first reset would load them
+        load_kernels(self.policy.tracker)
         self.t0 = time.perf_counter()
         self.steps_at_start = steps0
         self.ious: list[float] = []
