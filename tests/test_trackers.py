@@ -648,3 +648,20 @@ def test_folded_batchnorm_cache_follows_weight_updates(toy):
     torch.testing.assert_close(
         replaced, reference_outputs(model, toy[0])["scores"], rtol=0, atol=1e-5
     )
+
+
+def test_max_pool_is_amax_without_autograd_and_sends_the_gradient_to_the_first_max():
+    from trackers.layers import max_pool
+
+    x = torch.tensor(
+        [[[1.0, 5.0], [3.0, 5.0], [3.0, 2.0]], [[0.0, float("nan")], [1.0, 2.0], [1.0, 2.0]]]
+    )
+    expected = x.max(dim=1).values
+    assert torch.equal(max_pool(x, 1).nan_to_num(-1.0), expected.nan_to_num(-1.0))
+    leaf = x.nan_to_num(0.0).requires_grad_()
+    max_pool(leaf, 1).sum().backward()
+    # ties (copies of a point) send all of it to the first maximal element, as max_pool2d does
+    first = torch.tensor(
+        [[[0.0, 1.0], [1.0, 0.0], [0.0, 0.0]], [[0.0, 0.0], [1.0, 1.0], [0.0, 0.0]]]
+    )
+    assert torch.equal(leaf.grad, first)
