@@ -1,5 +1,6 @@
 """Any tracker by name or file: :func:`load_tracker`, what ``pointtrack eval``, ``select``,
-``demo`` and ``finetune`` read their ``--tracker`` with."""
+``demo`` and ``finetune`` read their ``--tracker`` with; :func:`load_kernels`, the compiled
+kernels such a command's set-up loads for it."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ from typing import Any
 import torch
 
 import trackers
+from envs.kernels import load_kernels as load_env_kernels
+from trackers import decision, ops
 from trackers.registry import find_checkpoint
 from training.checkpoint import is_training_checkpoint, tracker_from_checkpoint
 from training.residual_file import is_residual_file
@@ -61,11 +64,7 @@ def load_kernels(tracker: Any) -> None:
     fine-tune's clock starts (its steps/s measures the loop, not the process's start-up).
     Nothing happens without numba (:func:`envs.kernels.load_kernels`,
     :func:`trackers.ops.load_kernels`, :func:`trackers.decision.load_kernels`)."""
-    from envs.kernels import load_kernels as load_env_kernels
-
     load_env_kernels()
     if isinstance(tracker, torch.nn.Module):
-        from trackers import decision, ops
-
         ops.load_kernels()
         decision.load_kernels()
