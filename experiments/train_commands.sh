@@ -17,11 +17,11 @@ train_u() {  # TRACKER SETTING SIZE WORKERS SECONDS [flags]: the registered -U r
     --val-max-tracklets 16 --val-max-frames 40 --seed 0 --device "$DEVICE" \
     --num-workers "$workers" --no-progress "$@" "${SMOKE_FLAGS[@]}"
 }
-train_w() {  # TRACKER SETTING SIZE WORKERS U_RUN OUT_RUN SECONDS: the registered -W fine-tune
+train_w() {  # TRACKER SETTING SIZE WORKERS U_RUN OUT_RUN SECONDS [flags]: the registered -W fine-tune
   timeout "$7" python3 -m training.cli train --tracker "$1" --setting "$2" \
     --weighting decorrelation --dataset synthetic --preset default --model-size "$3" \
     --batch-size 16 --iters-per-epoch 50 --lr 1e-4 --set lr_step_epochs=6 --epochs 8 \
     --set val_every=2 --size-jitter 0.3 --ema-decay 0.995 --threads 1 --val-max-tracklets 16 \
     --val-max-frames 40 --seed 13 --init-weights "$5/best.pt" --device "$DEVICE" \
-    --num-workers "$4" --no-progress "${SMOKE_FLAGS[@]}" --out "$6"
+    --num-workers "$4" --no-progress "${@:8}" "${SMOKE_FLAGS[@]}" --out "$6"
 }

@@ -220,3 +220,26 @@ def test_the_console_entry_skips_the_teardown_after_eval_and_keeps_its_output(tm
     other = entry("info", "p2b-kitti1-u")
     assert other.returncode == 0, other.stderr
     assert "atexit ran" in other.stdout and "teardown ran" in other.stdout
+
+
+def test_network_alone_turns_the_files_inference_settings_off(tmp_path):
+    import argparse
+    import dataclasses
+
+    from trackers.decision import InferenceConfig
+    from training.commands.eval import EvalPlan, load_trackers
+
+    args = argparse.Namespace(tracker=["p2b-kitti1-u", "previous_box"], eval_seed=0)
+    plan = EvalPlan((0,), 1, 1, "cpu", True, None)
+    shipped = load_trackers(args, plan)["p2b-kitti1-u"]
+    assert shipped.inference != InferenceConfig()  # the file records a hold and a re-ranking
+    alone = load_trackers(args, dataclasses.replace(plan, network_alone=True))
+    assert alone["p2b-kitti1-u"].inference == InferenceConfig()
+    out = tmp_path / "alone"
+    flags = ["--preset", "tiny", "--max-tracklets", "1", "--workers", "1", "--no-progress"]
+    assert (
+        main(["eval", "--tracker", "p2b-kitti1-u", "--network-alone", *flags, "--out", str(out)])
+        == 0
+    )
+    report = json.loads((out / "report.json").read_text())["p2b-kitti1-u"]
+    assert report["eval"]["network_alone"] is True

@@ -533,3 +533,29 @@ def test_search_lever_pairs_the_seeds_and_gives_the_verdict(tmp_path, capsys):
         script.main([str(selection), str(new), str(tmp_path / "elsewhere")])
     with pytest.raises(SystemExit, match="p2b-decorrelation-s0"):  # -W runs' names
         script.main([str(selection), str(new), str(pilot), "--arm", "decorrelation"])
+
+
+def test_mbptrack_ship_picks_the_best_val_run_and_gates_on_the_predecessors(tmp_path):
+    script = _script("mbptrack_ship")
+    a = _run(tmp_path, "a", {4: {"val_success": 30.0}, 8: {"val_success": 41.5}})
+    b = _run(tmp_path, "b", {4: {"val_success": 41.5}})
+    c = _run(tmp_path, "c", {4: {"val_success": 45.0}})
+    assert script.best_val_run([a, b]) == a  # a tie: the first run given
+    assert script.best_val_run([a, b, c]) == c
+    rows = [
+        {"candidate": name, "success": 50.0 - i}
+        for i, name in enumerate(["bat-kitti1-u", "u1/best.pt", "u0/best.pt", "p2b-kitti1-u"])
+    ] + [{"candidate": "gpt-kitti1-u", "success": 1.0}]
+    selection = tmp_path / "selection.json"
+    selection.write_text(json.dumps({"ranking": rows}))
+    assert script.first_of(selection, ["u0/best.pt", "u1/best.pt"]) == "u1/best.pt"
+    lines = script.gate_lines(rows, "u1/best.pt", "u")
+    assert lines == [
+        "  above p2b-kitti1-u",
+        "  below bat-kitti1-u",
+        "  above gpt-kitti1-u",
+        "  -> mbptrack-kitti1-u does not ship",
+    ]
+    assert script.gate_lines(rows[1:] + rows[:1], "u1/best.pt", "u")[-1].endswith(" ships")
+    with pytest.raises(SystemExit, match="ranks none of"):
+        script.first_of(selection, ["other/best.pt"])

@@ -110,6 +110,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="refuse, instead of warning, a tracker whose provenance says it trained or was "
         "selected on the data evaluated, or trained on a category the setting holds out",
     )
+    parser.add_argument(
+        "--network-alone",
+        action="store_true",
+        help="evaluate each learned tracker without the inference settings its file records "
+        "(the still-target test and the re-ranking off): its network's best proposal; the "
+        "report's eval block says so",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     # --weather, --weather-levels, --weather-seed, --no-analysis (training.robustness, issue 7)
     from training.robustness import add_weather_arguments
@@ -267,6 +274,7 @@ class EvalPlan:
     device: str
     batch_invariant: bool
     oracle: str | None
+    network_alone: bool = False  # the learned trackers' inference settings off
 
     def describe(self) -> dict[str, Any]:
         """The plan as the report's JSON ``eval`` block."""
@@ -277,6 +285,7 @@ class EvalPlan:
             "device": self.device,
             "batch_invariant": self.batch_invariant,
             "oracle": self.oracle,
+            "network_alone": self.network_alone,
         }
 
 
@@ -416,7 +425,9 @@ def check_args(args: argparse.Namespace) -> EvalPlan:
     except ValueError as exc:
         raise SystemExit(f"pointtrack eval: {exc}") from exc
     oracle = None if args.reference == "prediction" else args.reference
-    return EvalPlan(tuple(seeds), workers, num_envs, device, not batched, oracle)
+    return EvalPlan(
+        tuple(seeds), workers, num_envs, device, not batched, oracle, args.network_alone
+    )
 
 
 def check_device(device: str) -> str:
@@ -458,8 +469,10 @@ def check_out(args: argparse.Namespace) -> None:
 
 def load_trackers(args: argparse.Namespace, plan: EvalPlan | None = None) -> dict[str, Any]:
     """``{name: tracker}`` for every ``--tracker``, all loaded (and so validated) up front, on
-    ``plan.device`` with ``plan.batch_invariant`` (learned trackers; no plan: the CPU, one
-    sample per forward, an untrained one seeded by ``args.eval_seed``)."""
+    ``plan.device`` with ``plan.batch_invariant`` and, with ``plan.network_alone``, the default
+    :class:`~trackers.decision.InferenceConfig` (learned trackers; no plan: the CPU, one sample
+    per forward, an untrained one seeded by ``args.eval_seed``)."""
+    from trackers.decision import InferenceConfig
     from training.loading import load_tracker
 
     if len(set(args.tracker)) != len(args.tracker):
@@ -476,6 +489,8 @@ def load_trackers(args: argparse.Namespace, plan: EvalPlan | None = None) -> dic
         if hasattr(tracker, "batch_invariant") and hasattr(tracker, "to"):
             tracker.to(plan.device)
             tracker.batch_invariant = plan.batch_invariant
+        if plan.network_alone and hasattr(tracker, "inference"):
+            tracker.inference = InferenceConfig()
     return loaded
 
 

@@ -1,0 +1,149 @@
+"""The steps of ``experiments/mbptrack_ship.sh`` that read files (docs/mbptrack.md,
+"Shipped-budget runs"); nothing here trains, evaluates or ships.
+
+    python experiments/mbptrack_ship.py best-val RUN [RUN ...]      # the run with the best val
+    python experiments/mbptrack_ship.py first SELECTION CAND [CAND ...]  # the first-ranked CAND
+    python experiments/mbptrack_ship.py report ROOT                 # the protocol's tables
+
+``best-val`` prints the run whose trainer validation Success (``RUN/log.jsonl``) is highest (the
+first run given on a tie). ``first`` prints whichever of the given candidates ranks first in a
+``pointtrack select`` ranking. ``report`` prints the trainer's validations, the selection with
+the shipping gates, and the test readings against the goals of issue 46.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+PREDECESSORS = {
+    "u": ("p2b-kitti1-u", "bat-kitti1-u", "gpt-kitti1-u"),
+    "w": ("p2b-kitti1-w", "bat-kitti1-w", "gpt-kitti1-w"),
+}
+OTHER_SHIPPED = ("p2b-kitti1-u-rl", "gpt-kitti1-u-rl", "p2b-kitti1-drct")
+
+
+def read_json(path: Path) -> Any:
+    """``path``'s JSON, or an exit naming the file."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"{path}: cannot read ({exc})") from None
+
+
+def val_successes(run: Path) -> list[float]:
+    """Every trainer validation Success of ``run`` (``log.jsonl``'s epoch lines), in order."""
+    path = run / "log.jsonl"
+    try:
+        lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"{path}: cannot read ({exc})") from None
+    return [e["val_success"] for e in lines if e.get("kind") == "epoch" and "val_success" in e]
+
+
+def best_val_run(runs: list[Path]) -> Path:
+    """The run with the highest validation Success (the first given on a tie)."""
+    best = {run: max(val_successes(run), default=float("-inf")) for run in runs}
+    return max(runs, key=lambda run: (best[run], -runs.index(run)))
+
+
+def ranking(selection: Path) -> list[dict[str, Any]]:
+    """The rows of a ``pointtrack select`` ranking, first-ranked first."""
+    rows = read_json(selection).get("ranking")
+    if not rows:
+        raise SystemExit(f"{selection}: no ranking")
+    return rows
+
+
+def first_of(selection: Path, candidates: list[str]) -> str:
+    """Whichever of ``candidates`` ranks first in ``selection``."""
+    for row in ranking(selection):
+        if row["candidate"] in candidates:
+            return row["candidate"]
+    raise SystemExit(f"{selection}: ranks none of {candidates}")
+
+
+def success(report: dict[str, Any], group: str) -> str:
+    """``Success [lo, hi]`` of one group of a report."""
+    entry = report[group]
+    lo, hi = entry["success_interval"]
+    return f"{entry['success']:.1f} [{lo:.1f}, {hi:.1f}]"
+
+
+def gate_lines(rows: list[dict[str, Any]], ours: str, arm: str) -> list[str]:
+    """Whether ``ours`` ranks above each predecessor of ``arm`` in the selection."""
+    rank = {row["candidate"]: i for i, row in enumerate(rows)}
+    lines = []
+    for name in PREDECESSORS[arm]:
+        above = rank[ours] < rank[name]
+        lines.append(f"  {'above' if above else 'below'} {name}")
+    verdict = all(rank[ours] < rank[name] for name in PREDECESSORS[arm])
+    lines.append(f"  -> mbptrack-kitti1-{arm} {'ships' if verdict else 'does not ship'}")
+    return lines
+
+
+def report(root: Path) -> None:
+    """Print the protocol's tables from the files ``mbptrack_ship.sh`` wrote under ``root``."""
+    runs = sorted(root.glob("mbptrack-*-s*")) + [root / "mbptrack-w"]
+    print("trainer validation Success (world 0 val), each validation in order:")
+    for run in runs:
+        print(f"  {run.name}: {', '.join(f'{v:.1f}' for v in val_successes(run))}")
+    rows = ranking(root / "select" / "selection.json")
+    print("\npointtrack select (pooled observed Success on the never-trained parts):")
+    for i, row in enumerate(rows, 1):
+        print(f"  {i:2d}. {row['candidate']}: {row['success']:.2f}")
+    u_runs = [str(run / "best.pt") for run in runs if run.name.startswith("mbptrack-u-")]
+    chosen = {"u": first_of(root / "select" / "selection.json", u_runs)}
+    chosen["w"] = str(root / "mbptrack-w" / "best.pt")
+    for arm, ours in chosen.items():
+        print(f"\n-{arm.upper()}: {ours}")
+        print("\n".join(gate_lines(rows, ours, arm)))
+    tested = read_json(root / "test" / "report.json")
+    alone = read_json(root / "test-network-alone" / "report.json")
+    shipped = read_json(root / "test-shipped" / "report.json")
+    print("\ntest, world 0 of `default`, eval seeds 0-2: observed / unseen Car Success [90 %]")
+    for name in chosen.values():
+        print(f"  {name}: {success(tested[name], 'observed')} / {success(tested[name], 'unseen')}")
+    for name in (*PREDECESSORS["u"], *PREDECESSORS["w"], *OTHER_SHIPPED):
+        print(
+            f"  {name}: network alone {success(alone[name], 'observed')} / "
+            f"{success(alone[name], 'unseen')}; as shipped {success(shipped[name], 'observed')} "
+            f"/ {success(shipped[name], 'unseen')}"
+        )
+    ours = tested[chosen["u"]]
+    beats_networks = all(
+        ours["observed"]["success"] > alone[name]["observed"]["success"] for name in alone
+    )
+    beats_shipped = all(
+        ours["unseen"]["success"] > shipped[name]["unseen"]["success"] for name in shipped
+    )
+    print(
+        f"\ngoal 1, observed above every network alone: {'met' if beats_networks else 'not met'}; "
+        f"unseen Car above every shipped file: {'met' if beats_shipped else 'not met'}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="step", required=True)
+    best = sub.add_parser("best-val")
+    best.add_argument("runs", nargs="+", type=Path)
+    first = sub.add_parser("first")
+    first.add_argument("selection", type=Path)
+    first.add_argument("candidates", nargs="+")
+    tables = sub.add_parser("report")
+    tables.add_argument("root", type=Path)
+    args = parser.parse_args(argv)
+    if args.step == "best-val":
+        print(best_val_run(args.runs))
+    elif args.step == "first":
+        print(first_of(args.selection, args.candidates))
+    else:
+        report(args.root)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

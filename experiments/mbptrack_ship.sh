@@ -1,0 +1,70 @@
+#!/usr/bin/env bash
+# MBPTrack kitti-1 files at the shipped files' budget (docs/mbptrack.md, "Shipped-budget runs"):
+# two -U runs (training seeds 0 and 1) side by side, the -W fine-tune of the one with the better
+# trainer val Success, one `pointtrack select` beside the shipped kitti-1 P2B / BAT / GPT files,
+# then the test readings the protocol names. Run again after a kill: training resumes from
+# OUT/last.pt, finished steps are kept. STAGE=train stops after the -U runs; SMOKE=1 cuts every
+# run to a few steps (experiments/train_commands.sh).
+#   bash experiments/mbptrack_ship.sh [ROOT]    # default runs/mbptrack-ship
+set -euo pipefail
+root=${1:-runs/mbptrack-ship}
+export DEVICE=${DEVICE:-cpu} OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+source experiments/train_commands.sh
+mbptrack=(--size-jitter 0 --set adam_beta1=0.5 --set adam_eps=1e-6)
+world=(--preset default --seed 0 --setting kitti-1)
+predecessors=(p2b-kitti1-u bat-kitti1-u gpt-kitti1-u p2b-kitti1-w bat-kitti1-w gpt-kitti1-w)
+mkdir -p "$root/logs"
+
+resume_flag() {  # OUT: --resume where OUT holds an unfinished run
+  if [ -e "$1/config.yaml" ]; then echo --resume; fi
+}
+
+train_u_seed() {  # SEED
+  local out=$root/mbptrack-u-s$1
+  if [ -e "$out/done" ]; then return; fi
+  # shellcheck disable=SC2046 # an empty or one-word flag
+  train_u mbptrack kitti-1 slim 0 0 --epochs 32 --set lr_step_epochs=21 --set val_every=4 \
+    "${mbptrack[@]}" --seed "$1" --out "$out" $(resume_flag "$out") >"$root/logs/u-s$1.log" 2>&1
+  touch "$out/done"
+}
+
+train_u_seed 0 &
+train_u_seed 1 &
+wait
+if [ "${STAGE:-all}" = train ]; then exit 0; fi
+
+# -W from the -U run with the higher trainer val Success (seed 0 on a tie)
+start=$(python3 experiments/mbptrack_ship.py best-val "$root/mbptrack-u-s0" "$root/mbptrack-u-s1")
+if [ ! -e "$root/mbptrack-w/done" ]; then
+  # shellcheck disable=SC2046
+  train_w mbptrack kitti-1 slim 0 "$start" "$root/mbptrack-w" 0 "${mbptrack[@]}" \
+    $(resume_flag "$root/mbptrack-w") >"$root/logs/w.log" 2>&1 &
+  # the predecessors' never-trained-world reports meanwhile, on the other core (kept in
+  # select/parts and reused by the selection below)
+  pointtrack select "${predecessors[@]}" previous_box --setting kitti-1 --workers 1 \
+    --no-progress --out "$root/select" >"$root/logs/select-predecessors.log" 2>&1
+  wait
+  touch "$root/mbptrack-w/done"
+fi
+pointtrack select "$root"/mbptrack-u-s{0,1}/best.pt "$root/mbptrack-w/best.pt" \
+  "${predecessors[@]}" previous_box --setting kitti-1 --no-progress --out "$root/select" \
+  >"$root/logs/select.log" 2>&1
+
+# the test, read once: the first-ranked -U run and the -W run; beside them the shipped files
+read -r chosen_u < <(python3 experiments/mbptrack_ship.py first "$root/select/selection.json" \
+  "$root"/mbptrack-u-s{0,1}/best.pt)
+if [ ! -e "$root/test/done" ]; then
+  pointtrack eval --tracker "$chosen_u" "$root/mbptrack-w/best.pt" "${world[@]}" --split test \
+    --eval-seeds 0 1 2 --no-progress --out "$root/test" >"$root/logs/test.log" 2>&1
+  touch "$root/test/done"
+fi
+for form in network-alone shipped; do  # every shipped kitti-1 P2B / BAT / GPT file, both ways
+  if [ -e "$root/test-$form/done" ]; then continue; fi
+  flags=()
+  if [ "$form" = network-alone ]; then flags=(--network-alone); fi
+  pointtrack eval --tracker "${predecessors[@]}" p2b-kitti1-u-rl gpt-kitti1-u-rl p2b-kitti1-drct \
+    "${flags[@]}" "${world[@]}" --split test --eval-seeds 0 1 2 --no-progress \
+    --out "$root/test-$form" >"$root/logs/test-$form.log" 2>&1
+  touch "$root/test-$form/done"
+done
+python3 experiments/mbptrack_ship.py report "$root"
