@@ -3,11 +3,15 @@
 
     python experiments/mbptrack_ship.py best-val RUN [RUN ...]      # the run with the best val
     python experiments/mbptrack_ship.py first SELECTION CAND [CAND ...]  # the first-ranked CAND
+    python experiments/mbptrack_ship.py ship SELECT NAME [--command CMD ...]  # the gate, shipping
     python experiments/mbptrack_ship.py report ROOT                 # the protocol's tables
 
 ``best-val`` prints the run whose trainer validation Success (``RUN/log.jsonl``) is highest (the
 first run given on a tie). ``first`` prints whichever of the given candidates ranks first in a
-``pointtrack select`` ranking. ``report`` prints the trainer's validations, the selection with
+``pointtrack select`` ranking. ``ship`` ships ``SELECT/NAME.safetensors`` (a ``pointtrack select
+--save`` of one MBPTrack run and its three predecessors) as ``NAME`` where that run ranks first
+(``experiments/table4_ship.py``'s recipe and copy; ``scripts/backfill_provenance.py`` then
+records it). ``report`` prints the trainer's validations, the selection with
 the shipping gates, and the test readings against the goals of issue 46.
 """
 
@@ -15,8 +19,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from table4_ship import RECIPE_DIR, ship_file  # noqa: E402 - same folder
+
+from trackers.registry import CHECKPOINT_DIR  # noqa: E402
 
 PREDECESSORS = {
     "u": ("p2b-kitti1-u", "bat-kitti1-u", "gpt-kitti1-u"),
@@ -84,6 +95,29 @@ def gate_lines(rows: list[dict[str, Any]], ours: str, arm: str) -> list[str]:
     return lines
 
 
+def ship(select: Path, name: str, commands: list[str], checkpoints: Path, recipes: Path) -> bool:
+    """Ship ``select/NAME.safetensors`` as ``NAME`` if the selection in ``select`` ranks its
+    MBPTrack run above the predecessors of ``NAME``'s arm; -> whether it shipped."""
+    first = ranking(select / "selection.json")[0]["candidate"]
+    if first in PREDECESSORS[name.rsplit("-", 1)[-1]]:
+        print(f"{name}: not shipped ({first} ranks first)")
+        return False
+    source = select / f"{name}.safetensors"
+    if not source.is_file():
+        raise SystemExit(f"{source}: missing (run pointtrack select --save {source})")
+    target, recipe = ship_file(
+        source,
+        name,
+        commands,
+        checkpoints,
+        recipes,
+        doc="docs/mbptrack.md",
+        lost=f"the run directories ({select.parent}) are not kept in the repository",
+    )
+    print(f"{name}: shipped {first} as {target}, recipe {recipe}")
+    return True
+
+
 def report(root: Path) -> None:
     """Print the protocol's tables from the files ``mbptrack_ship.sh`` wrote under ``root``."""
     runs = sorted(root.glob("mbptrack-*-s*")) + [root / "mbptrack-w"]
@@ -133,6 +167,12 @@ def main(argv: list[str] | None = None) -> int:
     first = sub.add_parser("first")
     first.add_argument("selection", type=Path)
     first.add_argument("candidates", nargs="+")
+    shipping = sub.add_parser("ship")
+    shipping.add_argument("select", type=Path)
+    shipping.add_argument("name", choices=("mbptrack-kitti1-u", "mbptrack-kitti1-w"))
+    shipping.add_argument("--command", action="append", default=[])
+    shipping.add_argument("--checkpoints", type=Path, default=CHECKPOINT_DIR)
+    shipping.add_argument("--recipes", type=Path, default=RECIPE_DIR)
     tables = sub.add_parser("report")
     tables.add_argument("root", type=Path)
     args = parser.parse_args(argv)
@@ -140,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         print(best_val_run(args.runs))
     elif args.step == "first":
         print(first_of(args.selection, args.candidates))
+    elif args.step == "ship":
+        ship(args.select, args.name, args.command, args.checkpoints, args.recipes)
     else:
         report(args.root)
     return 0

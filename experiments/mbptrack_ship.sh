@@ -50,9 +50,24 @@ pointtrack select "$root"/mbptrack-u-s{0,1}/best.pt "$root/mbptrack-w/best.pt" \
   "${predecessors[@]}" previous_box --setting kitti-1 --no-progress --out "$root/select" \
   >"$root/logs/select.log" 2>&1
 
-# the test, read once: the first-ranked -U run and the -W run; beside them the shipped files
 read -r chosen_u < <(python3 experiments/mbptrack_ship.py first "$root/select/selection.json" \
   "$root"/mbptrack-u-s{0,1}/best.pt)
+# the gate: each arm's MBPTrack file against its three predecessors alone (the same pooled
+# scores, from the selection's kept reports), written by --save for shipping where it ranks first
+for arm in u w; do
+  ours=$chosen_u
+  if [ "$arm" = w ]; then ours=$root/mbptrack-w/best.pt; fi
+  mkdir -p "$root/select-$arm"
+  cp -rn "$root/select/parts" "$root/select-$arm/"
+  pointtrack select "$ours" {p2b,bat,gpt}-kitti1-$arm --setting kitti-1 --no-progress \
+    --out "$root/select-$arm" --save "$root/select-$arm/mbptrack-kitti1-$arm.safetensors" \
+    >"$root/logs/select-$arm.log" 2>&1
+  python3 experiments/mbptrack_ship.py ship "$root/select-$arm" "mbptrack-kitti1-$arm" \
+    --command "bash experiments/mbptrack_ship.sh $root"
+done
+python3 scripts/backfill_provenance.py
+
+# the test, read once: the first-ranked -U run and the -W run; beside them the shipped files
 if [ ! -e "$root/test/done" ]; then
   pointtrack eval --tracker "$chosen_u" "$root/mbptrack-w/best.pt" "${world[@]}" --split test \
     --eval-seeds 0 1 2 --no-progress --out "$root/test" >"$root/logs/test.log" 2>&1

@@ -63,10 +63,17 @@ def gate(root: Path, run: str) -> tuple[bool, list[str]]:
     return passed, lines
 
 
-def write_recipe(source: Path, name: str, commands: list[str], folder: Path) -> Path:
+def write_recipe(
+    source: Path,
+    name: str,
+    commands: list[str],
+    folder: Path,
+    doc: str = "docs/table4.md",
+    lost: str = "the run directories (runs/table4-pilot*) are not kept in the repository",
+) -> Path:
     """``folder/NAME.yaml``: the recipe of the file ``source`` that ships as ``NAME`` (its
     provenance as the selection wrote it, the digest of its bytes without provenance, the
-    commands)."""
+    commands, what is ``lost``), its header pointing to ``doc``."""
     provenance = trackers.load(source).provenance.to_dict()
     for key in ("written_by", "config_file"):  # the back-fill sets these
         provenance.pop(key, None)
@@ -75,11 +82,11 @@ def write_recipe(source: Path, name: str, commands: list[str], folder: Path) -> 
         "checkpoint": name,
         "sha256_without_provenance": digest,
         "commands": commands,
-        "lost": ["the run directories (runs/table4-pilot*) are not kept in the repository"],
+        "lost": [lost],
         "provenance": provenance,
     }
     path = folder / f"{name}.yaml"
-    header = f"# {name}: how trackers/checkpoints/{name}.safetensors was made (docs/table4.md)\n"
+    header = f"# {name}: how trackers/checkpoints/{name}.safetensors was made ({doc})\n"
     tmp = path.with_suffix(".tmp")
     tmp.write_text(header + yaml.safe_dump(recipe, sort_keys=False, width=100))
     tmp.replace(path)
@@ -114,14 +121,25 @@ def main(argv: list[str] | None = None) -> int:
     if args.dry_run:
         print(f"{args.name}: would ship {run} ({source})")
         return 0
-    # the recipe from the selection's copy: a file in the shipped directory loads only once
-    # the manifest lists it, which the back-fill writes
-    recipe = write_recipe(source, args.name, args.command, args.recipes)
-    target = args.checkpoints / source.name
-    shutil.copyfile(source, target.with_suffix(".tmp"))
-    target.with_suffix(".tmp").replace(target)
+    target, recipe = ship_file(source, args.name, args.command, args.checkpoints, args.recipes)
     print(f"{args.name}: shipped {run} as {target}, recipe {recipe}")
     return 0
+
+
+def ship_file(
+    source: Path, name: str, commands: list[str], checkpoints: Path, recipes: Path, **recipe_keys
+) -> tuple[Path, Path]:
+    """Copy ``source`` (a ``pointtrack select --save`` file) into ``checkpoints`` as
+    ``NAME.safetensors`` and write its recipe (:func:`write_recipe`, ``recipe_keys`` passed on);
+    -> (the shipped file, the recipe). ``python scripts/backfill_provenance.py`` then records
+    the recipe in the file and the manifest."""
+    # the recipe from the selection's copy: a file in the shipped directory loads only once
+    # the manifest lists it, which the back-fill writes
+    recipe = write_recipe(source, name, commands, recipes, **recipe_keys)
+    target = checkpoints / f"{name}.safetensors"
+    shutil.copyfile(source, target.with_suffix(".tmp"))
+    target.with_suffix(".tmp").replace(target)
+    return target, recipe
 
 
 if __name__ == "__main__":

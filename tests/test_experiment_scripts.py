@@ -559,3 +559,34 @@ def test_mbptrack_ship_picks_the_best_val_run_and_gates_on_the_predecessors(tmp_
     assert script.gate_lines(rows[1:] + rows[:1], "u1/best.pt", "u")[-1].endswith(" ships")
     with pytest.raises(SystemExit, match="ranks none of"):
         script.first_of(selection, ["other/best.pt"])
+
+
+def test_mbptrack_ship_ships_only_where_the_mbptrack_run_ranks_first(tmp_path, capsys, monkeypatch):
+    import trackers.registry
+
+    script = _script("mbptrack_ship")
+    shipped, recipes, select = tmp_path / "checkpoints", tmp_path / "recipes", tmp_path / "sel"
+    for folder in (shipped, recipes, select):
+        folder.mkdir()
+    trackers.registry.write_manifest(shipped)
+    monkeypatch.setattr(trackers.registry, "CHECKPOINT_DIR", shipped.resolve())
+    torch.manual_seed(0)
+    tracker = trackers.make("mbptrack", **trackers.size_config("mbptrack", "slim"))
+    trackers.save(tracker, select / "mbptrack-kitti1-u.safetensors")
+    order = ["bat-kitti1-u", "runs/m/mbptrack-u-s1/best.pt", "p2b-kitti1-u", "gpt-kitti1-u"]
+    (select / "selection.json").write_text(
+        json.dumps({"ranking": [{"candidate": c} for c in order]})
+    )
+    assert not script.ship(select, "mbptrack-kitti1-u", ["make it"], shipped, recipes)
+    assert "not shipped (bat-kitti1-u ranks first)" in capsys.readouterr().out
+    assert [p.name for p in shipped.iterdir()] == ["manifest.json"]
+    order = order[1:] + order[:1]
+    (select / "selection.json").write_text(
+        json.dumps({"ranking": [{"candidate": c} for c in order]})
+    )
+    assert script.ship(select, "mbptrack-kitti1-u", ["make it"], shipped, recipes)
+    source = select / "mbptrack-kitti1-u.safetensors"
+    assert (shipped / source.name).read_bytes() == source.read_bytes()
+    recipe_text = (recipes / "mbptrack-kitti1-u.yaml").read_text()
+    assert "(docs/mbptrack.md)" in recipe_text.splitlines()[0]
+    assert yaml.safe_load(recipe_text)["commands"] == ["make it"]
