@@ -542,3 +542,26 @@ def test_cuda_forward_matches_cpu():
         torch.testing.assert_close(gpu[key].cpu(), cpu[key], atol=1e-4, rtol=1e-4)
     obs = _obs(_act_batch(b=1, m=2, seed=11))
     np.testing.assert_allclose(model.act(obs), model.to("cpu").act(obs), atol=1e-4)
+
+
+@pytest.mark.parametrize("name", ["mbptrack-kitti1-u", "mbptrack-kitti1-w"])
+def test_shipped_file_loads_acts_and_records_its_provenance(name, toy):
+    """The shipped MBPTrack files (docs/mbptrack.md, "Shipped-budget runs"): slim, trained on
+    the `default` world's kitti-1 observed categories, chosen by `pointtrack select`; they act
+    on an env serving the memory, the same action twice (no hidden state)."""
+    tracker = trackers.load(name)
+    assert isinstance(tracker, MBPTrack) and tracker.config.memory_frames == 3
+    provenance = tracker.provenance
+    assert (provenance.preset, provenance.setting, provenance.world_seed) == (
+        "default",
+        "kitti-1",
+        0,
+    )
+    assert "Car" not in provenance.categories and provenance.selection
+    env = TrackingEnv(toy, observation_keys=KEYS, memory_frames=3)
+    obs, _ = env.reset(seed=0)
+    for _ in range(3):
+        action = tracker.act(obs)
+        assert np.isfinite(action).all()
+        np.testing.assert_array_equal(trackers.load(name).act(obs), action)
+        obs, *_ = env.step(action)
