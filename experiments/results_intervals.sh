@@ -21,6 +21,6 @@ run_setting() {  # SETTING TRACKER...
 }
 
 run_setting kitti-1 p2b-kitti1-u p2b-kitti1-w bat-kitti1-u bat-kitti1-w gpt-kitti1-u gpt-kitti1-w \
-  p2b-kitti1-u-rl gpt-kitti1-u-rl p2b-kitti1-drct m2track-kitti1-u m2track-kitti1-w previous_box \
-  constant_velocity
+  p2b-kitti1-u-rl gpt-kitti1-u-rl p2b-kitti1-drct m2track-kitti1-u m2track-kitti1-w \
+  mbptrack-kitti1-u mbptrack-kitti1-w previous_box constant_velocity
 run_setting kitti-2 p2b-kitti2-u p2b-kitti2-w previous_box constant_velocity
