@@ -25,7 +25,9 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from table4_ship import RECIPE_DIR, ship_file  # noqa: E402 - same folder
+from epoch_losses import epoch_rows  # noqa: E402 - same folder
+from table4 import cell, load_reports  # noqa: E402
+from table4_ship import RECIPE_DIR, ship_file  # noqa: E402
 
 from trackers.registry import CHECKPOINT_DIR  # noqa: E402
 
@@ -36,22 +38,9 @@ PREDECESSORS = {
 OTHER_SHIPPED = ("p2b-kitti1-u-rl", "gpt-kitti1-u-rl", "p2b-kitti1-drct")
 
 
-def read_json(path: Path) -> Any:
-    """``path``'s JSON, or an exit naming the file."""
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise SystemExit(f"{path}: cannot read ({exc})") from None
-
-
 def val_successes(run: Path) -> list[float]:
     """Every trainer validation Success of ``run`` (``log.jsonl``'s epoch lines), in order."""
-    path = run / "log.jsonl"
-    try:
-        lines = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    except (OSError, ValueError) as exc:
-        raise SystemExit(f"{path}: cannot read ({exc})") from None
-    return [e["val_success"] for e in lines if e.get("kind") == "epoch" and "val_success" in e]
+    return [row["val_success"] for row in epoch_rows(run).values() if "val_success" in row]
 
 
 def best_val_run(runs: list[Path]) -> Path:
@@ -62,7 +51,10 @@ def best_val_run(runs: list[Path]) -> Path:
 
 def ranking(selection: Path) -> list[dict[str, Any]]:
     """The rows of a ``pointtrack select`` ranking, first-ranked first."""
-    rows = read_json(selection).get("ranking")
+    try:
+        rows = json.loads(selection.read_text()).get("ranking")
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"{selection}: cannot read ({exc})") from None
     if not rows:
         raise SystemExit(f"{selection}: no ranking")
     return rows
@@ -76,21 +68,12 @@ def first_of(selection: Path, candidates: list[str]) -> str:
     raise SystemExit(f"{selection}: ranks none of {candidates}")
 
 
-def success(report: dict[str, Any], group: str) -> str:
-    """``Success [lo, hi]`` of one group of a report."""
-    entry = report[group]
-    lo, hi = entry["success_interval"]
-    return f"{entry['success']:.1f} [{lo:.1f}, {hi:.1f}]"
-
-
 def gate_lines(rows: list[dict[str, Any]], ours: str, arm: str) -> list[str]:
     """Whether ``ours`` ranks above each predecessor of ``arm`` in the selection."""
     rank = {row["candidate"]: i for i, row in enumerate(rows)}
-    lines = []
-    for name in PREDECESSORS[arm]:
-        above = rank[ours] < rank[name]
-        lines.append(f"  {'above' if above else 'below'} {name}")
-    verdict = all(rank[ours] < rank[name] for name in PREDECESSORS[arm])
+    above = {name: rank[ours] < rank[name] for name in PREDECESSORS[arm]}
+    lines = [f"  {'above' if up else 'below'} {name}" for name, up in above.items()]
+    verdict = all(above.values())
     lines.append(f"  -> mbptrack-kitti1-{arm} {'ships' if verdict else 'does not ship'}")
     return lines
 
@@ -134,17 +117,17 @@ def report(root: Path) -> None:
     for arm, ours in chosen.items():
         print(f"\n-{arm.upper()}: {ours}")
         print("\n".join(gate_lines(rows, ours, arm)))
-    tested = read_json(root / "test" / "report.json")
-    alone = read_json(root / "test-network-alone" / "report.json")
-    shipped = read_json(root / "test-shipped" / "report.json")
+    tested = load_reports(root / "test")
+    alone = load_reports(root / "test-network-alone")
+    shipped = load_reports(root / "test-shipped")
     print("\ntest, world 0 of `default`, eval seeds 0-2: observed / unseen Car Success [90 %]")
     for name in chosen.values():
-        print(f"  {name}: {success(tested[name], 'observed')} / {success(tested[name], 'unseen')}")
+        print(f"  {name}: {cell(tested[name], 'observed')} / {cell(tested[name], 'unseen')}")
     for name in (*PREDECESSORS["u"], *PREDECESSORS["w"], *OTHER_SHIPPED):
         print(
-            f"  {name}: network alone {success(alone[name], 'observed')} / "
-            f"{success(alone[name], 'unseen')}; as shipped {success(shipped[name], 'observed')} "
-            f"/ {success(shipped[name], 'unseen')}"
+            f"  {name}: network alone {cell(alone[name], 'observed')} / "
+            f"{cell(alone[name], 'unseen')}; as shipped {cell(shipped[name], 'observed')} "
+            f"/ {cell(shipped[name], 'unseen')}"
         )
     ours = tested[chosen["u"]]
     beats_networks = all(
