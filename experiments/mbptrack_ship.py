@@ -1,18 +1,20 @@
-"""The steps of ``experiments/mbptrack_ship.sh`` that read files (docs/mbptrack.md,
-"Shipped-budget runs"); nothing here trains, evaluates or ships.
+"""The steps of ``experiments/mbptrack_ship.sh`` and ``experiments/mbptrack_hold.sh`` that read
+files and ship (docs/mbptrack.md, "Shipped-budget runs", "Still-target test on the shipped
+files"); nothing here trains or evaluates.
 
     python experiments/mbptrack_ship.py best-val RUN [RUN ...]      # the run with the best val
     python experiments/mbptrack_ship.py first SELECTION CAND [CAND ...]  # the first-ranked CAND
-    python experiments/mbptrack_ship.py ship SELECT NAME [--command CMD ...]  # the gate, shipping
+    python experiments/mbptrack_ship.py ship SELECT NAME [--command CMD ...] [--not-if CAND ...]
     python experiments/mbptrack_ship.py report ROOT                 # the protocol's tables
 
 ``best-val`` prints the run whose trainer validation Success (``RUN/log.jsonl``) is highest (the
 first run given on a tie). ``first`` prints whichever of the given candidates ranks first in a
 ``pointtrack select`` ranking. ``ship`` ships ``SELECT/NAME.safetensors`` (a ``pointtrack select
---save`` of one MBPTrack run and its three predecessors) as ``NAME`` where that run ranks first
-(``experiments/table4_ship.py``'s recipe and copy; ``scripts/backfill_provenance.py`` then
-records it). ``report`` prints the trainer's validations, the selection with
-the shipping gates, and the test readings against the goals of issue 46.
+--save`` of one MBPTrack run and its three predecessors, or of a shipped file's hold variants)
+as ``NAME`` unless a ``--not-if`` candidate ranks first (``experiments/table4_ship.py``'s recipe
+and copy; ``scripts/backfill_provenance.py`` then records it). ``report`` prints the trainer's
+validations, the selection with the shipping gates, and the test readings against the goals of
+issue 46.
 """
 
 from __future__ import annotations
@@ -78,11 +80,19 @@ def gate_lines(rows: list[dict[str, Any]], ours: str, arm: str) -> list[str]:
     return lines
 
 
-def ship(select: Path, name: str, commands: list[str], checkpoints: Path, recipes: Path) -> bool:
-    """Ship ``select/NAME.safetensors`` as ``NAME`` if the selection in ``select`` ranks its
-    MBPTrack run above the predecessors of ``NAME``'s arm; -> whether it shipped."""
+def ship(
+    select: Path,
+    name: str,
+    commands: list[str],
+    checkpoints: Path,
+    recipes: Path,
+    not_if: tuple[str, ...] = (),
+) -> bool:
+    """Ship ``select/NAME.safetensors`` as ``NAME`` unless the selection in ``select`` ranks one
+    of ``not_if`` first (default: the predecessors of ``NAME``'s arm; the hold selection names
+    the shipped file itself and ``previous_box``); -> whether it shipped."""
     first = ranking(select / "selection.json")[0]["candidate"]
-    if first in PREDECESSORS[name.rsplit("-", 1)[-1]]:
+    if first in (not_if or PREDECESSORS[name.rsplit("-", 1)[-1]]):
         print(f"{name}: not shipped ({first} ranks first)")
         return False
     source = select / f"{name}.safetensors"
@@ -154,6 +164,12 @@ def main(argv: list[str] | None = None) -> int:
     shipping.add_argument("select", type=Path)
     shipping.add_argument("name", choices=("mbptrack-kitti1-u", "mbptrack-kitti1-w"))
     shipping.add_argument("--command", action="append", default=[])
+    shipping.add_argument(
+        "--not-if",
+        nargs="+",
+        default=[],
+        help="candidates whose first rank ships nothing (default: the arm's predecessors)",
+    )
     shipping.add_argument("--checkpoints", type=Path, default=CHECKPOINT_DIR)
     shipping.add_argument("--recipes", type=Path, default=RECIPE_DIR)
     tables = sub.add_parser("report")
@@ -164,7 +180,14 @@ def main(argv: list[str] | None = None) -> int:
     elif args.step == "first":
         print(first_of(args.selection, args.candidates))
     elif args.step == "ship":
-        ship(args.select, args.name, args.command, args.checkpoints, args.recipes)
+        ship(
+            args.select,
+            args.name,
+            args.command,
+            args.checkpoints,
+            args.recipes,
+            tuple(args.not_if),
+        )
     else:
         report(args.root)
     return 0

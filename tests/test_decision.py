@@ -56,7 +56,7 @@ def test_the_recording_covers_every_shipped_kitti1_matching_file(recorded):
     shipped = [
         n
         for n in trackers.available("checkpoint")
-        if "kitti1" in n and trackers.load(n).supports_inference
+        if "kitti1" in n and "rerank_top_k" in trackers.load(n).inference_fields
     ]
     assert _recorded_names(recorded) == sorted(shipped) == sorted(RECORDED)
 
@@ -406,10 +406,12 @@ def test_inference_config_checks_its_fields():
         tiny("p2b", hold_chamfer_m=0.1)
     with pytest.raises(TypeError, match="must be a trackers.decision.InferenceConfig"):
         tiny("p2b").inference = {"hold_chamfer_m": 0.1}
-    with pytest.raises(ValueError, match="m2track: the still-target test"):
+    with pytest.raises(ValueError, match=r"m2track: InferenceConfig field\(s\) \['rerank_top_k'\]"):
         trackers.make("m2track").inference = InferenceConfig(rerank_top_k=2)
-    with pytest.raises(ValueError, match="the dead zone are for matching trackers"):
+    with pytest.raises(ValueError, match=r"\['min_motion_m'\] do not fit.*set only \[\]"):
         trackers.make("m2track").inference = InferenceConfig(min_motion_m=1.0)
+    with pytest.raises(ValueError, match=r"mbptrack: .*\['rerank_top_k'\] do not fit"):
+        trackers.make("mbptrack").inference = InferenceConfig(hold_chamfer_m=0.1, rerank_top_k=2)
     tracker = tiny("bat")
     tracker.inference = InferenceConfig(hold_chamfer_m=0.1)
     tracker.env_options = {"template_mode": "first_and_previous_merged"}

@@ -357,6 +357,10 @@ def test_hold_variants_change_only_the_still_target_test(tmp_path):
         assert (inference.hold_chamfer_m, inference.min_motion_m) == (hold, 1.0)
     other = script.write_variants(run, [2.5], tmp_path / "zone", [1.0], prefix="budget-")
     assert [p.name for p in other] == ["budget-p2b-none-s0-h2.5-m1.safetensors"]
+    script.load_tracker = trackers.load  # a tracker file (or a shipped name) as it is
+    (held,) = script.write_variants(run / "model.safetensors", [0.2], tmp_path / "file")
+    assert held.name == "model-h0.2.safetensors"
+    assert trackers.load(held).inference.hold_chamfer_m == 0.2
 
 
 def test_still_moving_splits_tracklets_by_previous_box_and_weights_by_frames():
@@ -590,3 +594,7 @@ def test_mbptrack_ship_ships_only_where_the_mbptrack_run_ranks_first(tmp_path, c
     recipe_text = (recipes / "mbptrack-kitti1-u.yaml").read_text()
     assert "(docs/mbptrack.md)" in recipe_text.splitlines()[0]
     assert yaml.safe_load(recipe_text)["commands"] == ["make it"]
+    held = ("mbptrack-kitti1-u", "previous_box")  # the hold selection: the file itself first
+    (select / "selection.json").write_text(json.dumps({"ranking": [{"candidate": held[0]}]}))
+    assert not script.ship(select, held[0], ["make it"], shipped, recipes, not_if=held)
+    assert "not shipped (mbptrack-kitti1-u ranks first)" in capsys.readouterr().out

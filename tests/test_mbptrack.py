@@ -212,6 +212,27 @@ def test_missing_target_repeats_the_last_motion():
     assert not np.allclose(model.act(obs), obs["motion"])
 
 
+def test_still_target_test_keeps_the_box_and_leaves_moving_targets_to_the_network():
+    """With ``hold_chamfer_m`` the tracker keeps the box (action 0) where the search's points in
+    the reference box match both template crops, and elsewhere acts as without it."""
+    from trackers.decision import InferenceConfig
+
+    model = _tiny(seed=4)
+    g = torch.Generator().manual_seed(11)
+    target = (torch.rand(256, 3, generator=g) - 0.5) * torch.tensor([4.0, 1.8, 1.5])
+    ground = (torch.rand(768, 3, generator=g) - 0.5) * torch.tensor([9.0, 6.0, 0.1])
+    ground[:, 2] -= 0.75
+    obs = _obs(_act_batch(b=1, m=2, seed=8))
+    obs["template"] = torch.cat([target, target]).numpy()  # first and previous crops
+    still = {**obs, "search": torch.cat([target, ground]).numpy()}
+    moved = {**obs, "search": torch.cat([target + torch.tensor([1.5, 0.0, 0.0]), ground]).numpy()}
+    free = {k: model.act(o) for k, o in (("still", still), ("moved", moved))}
+    model.inference = InferenceConfig(hold_chamfer_m=0.15)
+    np.testing.assert_array_equal(model.act(still), np.zeros(4, np.float32))
+    np.testing.assert_array_equal(model.act(moved), free["moved"])
+    assert np.abs(free["still"]).max() > 0  # the hold, not the network, kept the box
+
+
 def test_missing_memory_key_and_short_memory_are_clear_errors():
     model = _tiny()
     obs = _obs(_act_batch(b=1, m=2))

@@ -211,10 +211,10 @@ class Tracker(nn.Module):
     #: RL fine-tuning's ``train_parts`` (:mod:`training.rl`) -> the child modules each trains;
     #: ``"all"`` (every child) is implied
     train_parts: ClassVar[dict[str, tuple[str, ...]]] = {}
-    #: whether :mod:`trackers.decision`'s still-target test and re-ranking fit this tracker's
-    #: observations and outputs (a matching tracker's); if not, only the default
-    #: :class:`~trackers.decision.InferenceConfig` is accepted
-    supports_inference: ClassVar[bool] = False
+    #: the :class:`~trackers.decision.InferenceConfig` fields this tracker may set away from
+    #: their defaults: those of :mod:`trackers.decision`'s steps that fit its observations and
+    #: outputs (all of them for a matching tracker; none by default)
+    inference_fields: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, config: Any = None, **overrides: Any) -> None:
         super().__init__()
@@ -268,11 +268,17 @@ class Tracker(nn.Module):
                 f"{self.name}: tracker.inference must be a trackers.decision.InferenceConfig, "
                 f"got {type(config).__name__}"
             )
-        if config != InferenceConfig() and not self.supports_inference:
+        default = InferenceConfig()
+        unfit = [
+            f
+            for f in INFERENCE_FIELDS
+            if getattr(config, f) != getattr(default, f) and f not in self.inference_fields
+        ]
+        if unfit:
             raise ValueError(
-                f"{self.name}: the still-target test, the re-ranking and the dead zone are "
-                f"for matching trackers' observations and proposals; this tracker takes only "
-                f"the default InferenceConfig(), got {config}"
+                f"{self.name}: InferenceConfig field(s) {unfit} do not fit this tracker's "
+                f"observations and outputs; it may set only {list(self.inference_fields)} "
+                f"away from their defaults, got {config}"
             )
         self._inference = config
 
@@ -424,7 +430,7 @@ class MatchingTracker(Tracker):
     """
 
     config_class: ClassVar[type] = MatchingConfig
-    supports_inference: ClassVar[bool] = True
+    inference_fields: ClassVar[tuple[str, ...]] = INFERENCE_FIELDS
     train_parts: ClassVar[dict[str, tuple[str, ...]]] = {
         "head": ("head",),
         "fusion+head": ("fusion", "head"),

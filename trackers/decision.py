@@ -24,8 +24,9 @@ decided here, by settings that act at inference only and are no part of the arch
 :func:`decide` is the one place these run, in this order: ``Tracker.act`` and the RL policy
 (``training.rl.TrackerPolicy``) both call it. Both tests need the matching trackers' observation
 layout (``template (B, 512, 3)`` as the first and the previous frame's crops, ``search``,
-``size``) and their ``proposals`` / ``scores``; a tracker without it (M2-Track) refuses a
-non-default :class:`InferenceConfig` (``Tracker.supports_inference``).
+``size``), the re-ranking their ``proposals`` / ``scores`` too; a tracker sets only the fields
+that fit it away from their defaults (``Tracker.inference_fields``: every field for the matching
+trackers, the still-target test and the dead zone for MBPTrack, none for M2-Track).
 
 Cost (issue 41): one observation at a time (as the eval forward; a row's decision does not
 depend on its batch), every candidate's crop and Chamfer distance in one vectorised pass, the

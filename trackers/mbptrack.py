@@ -32,7 +32,11 @@ frame is its own memory with the reference box's mask (the reference's first-fra
 
 ``act`` executes the best-scored proposal; where no seed's mask probability reaches
 ``missing_threshold`` (the target is missing) it repeats the last motion (``motion``), as the
-reference does. Losses (per sample, batch means are the reference's batch losses): mask BCE
+reference does. Of :mod:`trackers.decision`'s inference settings it takes the still-target test
+and the dead zone (they read only the template crops, the search and the action); not the
+re-ranking, which would pick among raw proposals past the missing-target fallback.
+
+Losses (per sample, batch means are the reference's batch losses): mask BCE
 (0.2), centre MSE on target seeds (10), coarse and refined objectness BCE with positive weight 2
 and 0.3 m labels (1, 1), box smooth-L1 on positive proposals with the yaw in degrees (1).
 """
@@ -194,6 +198,7 @@ class MBPTrack(Tracker):
     sample_recipe: ClassVar[str] = "memory"
     observation_keys: ClassVar[tuple[str, ...]] = ("memory", "memory_boxes")
     point_keys: ClassVar[tuple[str, ...]] = ("search",)
+    inference_fields: ClassVar[tuple[str, ...]] = ("hold_chamfer_m", "min_motion_m")
     train_parts: ClassVar[dict[str, tuple[str, ...]]] = {"head": ("loc",)}
     #: DRCT's backbone tap (:func:`training.drct.tap_backbone`): the point backbone's attribute
     #: and its method that encodes one batch of clouds ``(F, N, 3)`` -> ``(xyz (F, S, 3),

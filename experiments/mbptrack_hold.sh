@@ -1,0 +1,39 @@
+#!/usr/bin/env bash
+# The still-target test on the shipped MBPTrack files (docs/mbptrack.md, "Still-target test on
+# the shipped files"): per arm, the shipped file, its hold variants (hold_chamfer_m 0.15 / 0.20)
+# and previous_box ranked by `pointtrack select` on the never-trained parts of `default`; a
+# variant ranked first replaces the shipped file (recipe + back-fill) and gets the one test
+# reading (world 0 test, eval seeds 0-2). Resumable: finished steps are kept.
+#   bash experiments/mbptrack_hold.sh [ROOT]    # default runs/mbptrack-hold; WORKERS (default 2)
+set -euo pipefail
+root=${1:-runs/mbptrack-hold}
+workers=${WORKERS:-2}
+export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+mkdir -p "$root/logs" "$root/hold" "$root/test"
+
+for arm in u w; do
+  name=mbptrack-kitti1-$arm
+  mapfile -t variants < <(python3 experiments/hold_variants.py "$name" --holds 0.15 0.2 \
+    --out "$root/hold")
+  out=$root/select-$arm
+  if [ ! -e "$out/selection.json" ]; then
+    pointtrack select "$name" "${variants[@]}" previous_box --setting kitti-1 \
+      --workers "$workers" --no-progress --out "$out" --save "$out/$name.safetensors" \
+      > "$root/logs/select-$arm.log" 2>&1
+  fi
+  first=$(python3 experiments/mbptrack_ship.py first "$out/selection.json" "$name" \
+    "${variants[@]}" previous_box)
+  if [ "$first" = "$name" ] || [ "$first" = previous_box ]; then continue; fi
+  test=$root/test/$(basename "$first" .safetensors)
+  if [ ! -e "$test/done" ]; then
+    pointtrack eval --tracker "$first" --preset default --seed 0 --split test \
+      --setting kitti-1 --eval-seeds 0 1 2 --workers "$workers" --no-progress --out "$test" \
+      > "$root/logs/test-$arm.log" 2>&1
+    touch "$test/done"
+  fi
+  # the recipe: the shipped file's own command, then this one
+  python3 experiments/mbptrack_ship.py ship "$out" "$name" \
+    --command "bash experiments/mbptrack_ship.sh /work/runs/mbptrack-ship" \
+    --command "bash experiments/mbptrack_hold.sh $root" --not-if "$name" previous_box
+done
+python3 scripts/backfill_provenance.py
