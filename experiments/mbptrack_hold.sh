@@ -34,6 +34,7 @@ for arm in u w; do
   # the recipe: the shipped file's own command, then this one
   python3 experiments/mbptrack_ship.py ship "$out" "$name" \
     --command "bash experiments/mbptrack_ship.sh /work/runs/mbptrack-ship" \
-    --command "bash experiments/mbptrack_hold.sh $root" --not-if "$name" previous_box
+    --command "bash experiments/mbptrack_hold.sh $root" --not-if "$name" previous_box \
+    --runs "/work/runs/mbptrack-ship, $root"
 done
 python3 scripts/backfill_provenance.py

@@ -87,10 +87,12 @@ def ship(
     checkpoints: Path,
     recipes: Path,
     not_if: tuple[str, ...] = (),
+    runs: str = "",
 ) -> bool:
     """Ship ``select/NAME.safetensors`` as ``NAME`` unless the selection in ``select`` ranks one
     of ``not_if`` first (default: the predecessors of ``NAME``'s arm; the hold selection names
-    the shipped file itself and ``previous_box``); -> whether it shipped."""
+    the shipped file itself and ``previous_box``); the recipe says the run directories ``runs``
+    (default: ``select``'s parent) are not kept; -> whether it shipped."""
     first = ranking(select / "selection.json")[0]["candidate"]
     if first in (not_if or PREDECESSORS[name.rsplit("-", 1)[-1]]):
         print(f"{name}: not shipped ({first} ranks first)")
@@ -105,7 +107,7 @@ def ship(
         checkpoints,
         recipes,
         doc="docs/mbptrack.md",
-        lost=f"the run directories ({select.parent}) are not kept in the repository",
+        lost=f"the run directories ({runs or select.parent}) are not kept in the repository",
     )
     print(f"{name}: shipped {first} as {target}, recipe {recipe}")
     return True
@@ -170,6 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="candidates whose first rank ships nothing (default: the arm's predecessors)",
     )
+    shipping.add_argument("--runs", default="", help="the run directories the recipe names")
     shipping.add_argument("--checkpoints", type=Path, default=CHECKPOINT_DIR)
     shipping.add_argument("--recipes", type=Path, default=RECIPE_DIR)
     tables = sub.add_parser("report")
@@ -187,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             args.checkpoints,
             args.recipes,
             tuple(args.not_if),
+            args.runs,
         )
     else:
         report(args.root)
