@@ -10,7 +10,11 @@ frames over the whole process's wall clock (start-up, imports, reading the world
 evaluation), ``evaluation`` the frames over the report's own ``wall_s`` (the evaluation alone,
 workers included). ``--workers`` is passed only when given (default: the command's own
 default, every usable core). Wall clock only: the workers are separate processes. The ``small``
-world is generated into the user cache by the first run (an untimed warm-up).
+world is generated into the user cache by the first run (an untimed warm-up), which also writes
+Python's bytecode caches of the measured tree: the processes run without
+``PYTHONDONTWRITEBYTECODE``, as an installed package does (with it set, as on the project's
+sandbox VMs, every run compiles the project's ~80 modules from source again: ~0.26 s of the
+command, a cost a user pays once).
 """
 
 from __future__ import annotations
@@ -31,7 +35,8 @@ from baseline import parser, run, use_code_root  # noqa: E402 - same folder
 def eval_once(root: Path, argv: list[str]) -> dict[str, float]:
     """One ``pointtrack eval`` process on the packages of ``root`` -> its two rates."""
     with tempfile.TemporaryDirectory(prefix="pointtrack-bench-eval-") as tmp:
-        env = {**os.environ, "PYTHONPATH": str(root)}
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+        env["PYTHONPATH"] = str(root)
         cmd = [sys.executable, "-m", "training.cli", "eval", *argv, "--no-progress", "--out", tmp]
         start = time.perf_counter()
         proc = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True)
