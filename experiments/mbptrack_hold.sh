@@ -9,6 +9,8 @@ set -euo pipefail
 root=${1:-runs/mbptrack-hold}
 workers=${WORKERS:-2}
 export OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
+world=(--dataset synthetic --preset default)
+source "$(dirname "$0")/table4_common.sh"  # first_ranked, read_test_once (on world 0 test)
 mkdir -p "$root/logs" "$root/hold" "$root/test"
 
 for arm in u w; do
@@ -21,16 +23,9 @@ for arm in u w; do
       --workers "$workers" --no-progress --out "$out" --save "$out/$name.safetensors" \
       > "$root/logs/select-$arm.log" 2>&1
   fi
-  first=$(python3 experiments/mbptrack_ship.py first "$out/selection.json" "$name" \
-    "${variants[@]}" previous_box)
+  first=$(first_ranked "$out/selection.json")
   if [ "$first" = "$name" ] || [ "$first" = previous_box ]; then continue; fi
-  test=$root/test/$(basename "$first" .safetensors)
-  if [ ! -e "$test/done" ]; then
-    pointtrack eval --tracker "$first" --preset default --seed 0 --split test \
-      --setting kitti-1 --eval-seeds 0 1 2 --workers "$workers" --no-progress --out "$test" \
-      > "$root/logs/test-$arm.log" 2>&1
-    touch "$test/done"
-  fi
+  read_test_once "$root" "$first" kitti-1
   # the recipe: the shipped file's own command, then this one
   python3 experiments/mbptrack_ship.py ship "$out" "$name" \
     --command "bash experiments/mbptrack_ship.sh /work/runs/mbptrack-ship" \
