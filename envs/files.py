@@ -9,7 +9,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["atomic_path", "atomic_write_bytes", "atomic_write_text"]
+__all__ = ["atomic_path", "atomic_save_safetensors", "atomic_write_bytes", "atomic_write_text"]
 
 
 def _temp_name(path: Path) -> Path:
@@ -43,3 +43,17 @@ def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
 def atomic_write_text(path: str | Path, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically (:func:`atomic_path`); returns the path."""
     return atomic_write_bytes(path, text.encode())
+
+
+def atomic_save_safetensors(
+    path: str | Path, tensors: dict, metadata: dict[str, str] | None = None
+) -> Path:
+    """Write ``tensors`` (name -> CPU tensor) and string ``metadata`` to a safetensors file
+    atomically; returns the path.
+
+    Serialised in memory and written with :func:`atomic_write_bytes`, not with
+    ``safetensors.torch.save_file``: that one (0.8) writes its own ``.tmpXXXXXX`` sibling, which a
+    ``SIGKILL`` leaves behind under a name no cleanup can tie to its process."""
+    from safetensors.torch import save
+
+    return atomic_write_bytes(path, save(tensors, metadata=metadata))

@@ -578,3 +578,38 @@ def test_resume_truncates_the_log_to_the_checkpoint(tmp_path):
     log.write_text("".join(json.dumps(r) + "\n" for r in records) + '{"kind": "tra')
     assert truncate_log(log, 16) == 3
     assert [json.loads(x) for x in log.read_text().splitlines()] == records[:3]
+
+
+_SAVE_FOREVER = """
+import sys, torch
+from envs.files import atomic_save_safetensors
+tensors = {"w": torch.zeros(16_000_000)}  # 64 MB: a kill falls inside a write most of the time
+print("ready", flush=True)
+while True:
+    atomic_save_safetensors(sys.argv[1], tensors, {"format": "test"})
+"""
+
+
+def test_sigkill_during_a_safetensors_write_leaves_only_temps_we_clean(tmp_path):
+    """safetensors' own ``save_file`` writes a ``.tmpXXXXXX`` sibling first, which a SIGKILL
+    left behind where :func:`remove_stale_temps` cannot tie it to a process (a CI failure of
+    the finetune resume test); every safetensors file of the project goes through
+    :func:`envs.files.atomic_save_safetensors` instead."""
+    from safetensors.torch import load_file
+
+    from training.rundir import remove_stale_temps
+
+    target = tmp_path / "state.safetensors"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    for delay in (0.05, 0.13, 0.29):
+        child = subprocess.Popen(
+            [sys.executable, "-c", _SAVE_FOREVER, str(target)], env=env, stdout=subprocess.PIPE
+        )
+        assert child.stdout.readline().strip() == b"ready"
+        time.sleep(delay)
+        child.send_signal(signal.SIGKILL)
+        child.wait()
+        remove_stale_temps(tmp_path)
+        assert sorted(p.name for p in tmp_path.iterdir()) in ([], ["state.safetensors"])
+        if target.exists():
+            assert load_file(str(target))["w"].shape == (16_000_000,)

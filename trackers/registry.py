@@ -47,7 +47,7 @@ from typing import Any
 
 import torch
 
-from envs.files import atomic_path, atomic_write_text
+from envs.files import atomic_path, atomic_save_safetensors, atomic_write_text
 from envs.spec import TEMPLATE_MODES, TRACKER_OPTION_KEYS, EnvOptions
 
 __all__ = [
@@ -310,13 +310,10 @@ def save(tracker: Any, path: str | Path, *, provenance: Any = None) -> Path:
         meta[METADATA_KEY] = provenance.to_json()
     state = {k: v.detach().cpu().contiguous() for k, v in tracker.state_dict().items()}
     _check_finite(path, state, "refusing to save")
+    if path.suffix not in (".pt", ".pth"):
+        return atomic_save_safetensors(path, state, meta)
     with atomic_path(path) as tmp:
-        if path.suffix in (".pt", ".pth"):
-            torch.save({**meta, "state_dict": state}, tmp)
-        else:
-            from safetensors.torch import save_file
-
-            save_file(state, str(tmp), metadata=meta)
+        torch.save({**meta, "state_dict": state}, tmp)
     return path
 
 

@@ -27,7 +27,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
-from envs.files import atomic_path, atomic_write_bytes, atomic_write_text
+from envs.files import atomic_path, atomic_save_safetensors, atomic_write_bytes, atomic_write_text
 
 __all__ = [
     "FINETUNE_LAYOUT",
@@ -36,6 +36,7 @@ __all__ = [
     "RunDirError",
     "RunLayout",
     "atomic_path",
+    "atomic_save_safetensors",
     "atomic_write_bytes",
     "atomic_write_text",
     "file_sha256",

@@ -10,10 +10,9 @@ from typing import Any
 
 import torch
 from safetensors import safe_open
-from safetensors.torch import save_file
 
 from training.rl.config import FinetuneError
-from training.rundir import atomic_path
+from training.rundir import atomic_save_safetensors
 
 __all__ = ["STATE_FORMAT", "load_state", "read_state_meta", "save_state"]
 
@@ -50,12 +49,11 @@ def save_state(
     tensors["rng.torch"] = torch.get_rng_state()
     groups = [dict(g) for g in opt["param_groups"]]
     meta = {**meta, "optimizer_groups": groups}
-    with atomic_path(path) as tmp:
-        save_file(
-            tensors,
-            str(tmp),
-            metadata={"format": STATE_FORMAT, "version": STATE_VERSION, "state": json.dumps(meta)},
-        )
+    atomic_save_safetensors(
+        path,
+        tensors,
+        {"format": STATE_FORMAT, "version": STATE_VERSION, "state": json.dumps(meta)},
+    )
 
 
 def load_state(

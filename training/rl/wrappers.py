@@ -19,14 +19,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
-from safetensors.torch import save_file
 from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper, VecMonitor
 
 from trackers.registry import read_safetensors, tracker_from_metadata, tracker_metadata
 from training.residual_file import RESIDUAL_FORMAT
 from training.rl.policy import TrackerPolicy
-from training.rundir import atomic_path
+from training.rundir import atomic_save_safetensors
 
 __all__ = [
     "FEATURE_DIM",
@@ -222,9 +221,7 @@ class ResidualTracker:
         # as trackers.save: the config, and env_options / inference where not the defaults
         base_meta = tracker_metadata(self.base)
         meta.update(base_config=base_meta.pop("config"), **base_meta)
-        with atomic_path(path) as tmp:
-            save_file(tensors, str(tmp), metadata=meta)
-        return path
+        return atomic_save_safetensors(path, tensors, meta)
 
     @classmethod
     def load(cls, path: str | Path) -> ResidualTracker:
