@@ -3,7 +3,8 @@
 
 * **Atomic writes**: :func:`atomic_path` (a context manager: write the yielded temporary sibling
   ``.NAME.tmpPID`` by any means, it is flushed to disk with ``fsync`` and renamed into place),
-  :func:`atomic_write_text` and :func:`atomic_write_bytes`, defined in :mod:`envs.files` (the
+  :func:`atomic_write_text`, :func:`atomic_write_bytes` and :func:`atomic_save_safetensors`
+  (every safetensors file), defined in :mod:`envs.files` (the
   env's pictures use them too) and re-exported here. A killed process leaves either the
   previous file or the new one, never a truncated one; :func:`remove_stale_temps` deletes the
   temporaries of dead processes.
