@@ -418,6 +418,21 @@ def test_replay_writes_source_labels_and_objects_get_points(tmp_path):
             assert points_in_box(tr.points(t), tr.boxes[t]).sum() > 10
 
 
+def test_cli_generate_cache_is_the_world_the_envs_use(tmp_path, capsys):
+    from envs.synthetic.nuscenes_layout import ensure_nuscenes_world
+    from training.cli import main
+
+    for layout, ensure in (("kitti", ensure_world), ("nuscenes", ensure_nuscenes_world)):
+        args = ["generate", "--cache", "--layout", layout, "--preset", "tiny", "--no-progress"]
+        assert main(args) == 0
+        root = Path(capsys.readouterr().out.strip())
+        assert root == ensure("tiny") and (root / "manifest.json").is_file()
+    assert main(["generate", "--cache", "--preset", "tiny", "--out", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err
+    assert "--cache does not take --out" in err and err.count("\n") == 1
+    assert not (tmp_path / "w").exists()
+
+
 def test_cli_generate(tmp_path, capsys):
     from training.cli import main
 

@@ -11,7 +11,14 @@ import time
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Declare this command's flags (valid values come from the synthetic module's tables)."""
     parser.add_argument(
-        "--out", help="output directory (created atomically); required unless --verify"
+        "--out", help="output directory (created atomically); required unless --verify or --cache"
+    )
+    parser.add_argument(
+        "--cache",
+        action="store_true",
+        help="generate into the world cache instead of --out, where the envs and every "
+        "command's --preset find it (e.g. before parallel jobs that would each build it); an "
+        "intact cached world is reused; prints its path",
     )
     parser.add_argument(
         "--verify",
@@ -79,8 +86,10 @@ def run(args: argparse.Namespace) -> int:
         if not problems:
             print(f"{args.verify}: every file matches the manifest (sizes and SHA-256)")
         return 1 if problems else 0
+    if args.cache:
+        return _run_cache(args)
     if not args.out:
-        raise SystemExit("pointtrack generate: --out DIR is required (or --verify DIR)")
+        raise SystemExit("pointtrack generate: --out DIR is required (or --verify DIR, --cache)")
 
     scenes = None
     if args.scenes:
@@ -153,4 +162,54 @@ def _run_nuscenes(args: argparse.Namespace, start: float) -> int:
             "pointtrack generate: --preview draws KITTI-layout worlds only; skipped",
             file=sys.stderr,
         )
+    return 0
+
+
+def _run_cache(args: argparse.Namespace) -> int:
+    """``--cache``: the world through ``ensure_world`` / ``ensure_nuscenes_world``, the same
+    entry the envs use, so its cache path and identity are theirs."""
+    from envs.synthetic import ensure_world
+    from envs.synthetic.nuscenes_layout import DEFAULT_VERSION, ensure_nuscenes_world
+
+    clashing = [
+        flag
+        for flag, given in (
+            ("--out", args.out),
+            ("--overwrite", args.overwrite),
+            ("--preview", args.preview),
+            ("--scan-frames", args.scan_frames is not None),
+            ("--scenes", args.scenes),
+        )
+        if given
+    ]
+    if args.layout == "nuscenes" and args.from_labels:
+        clashing.append("--from-labels")
+    if args.layout == "kitti" and args.version is not None:
+        clashing.append("--version")
+    if clashing:
+        print(
+            f"pointtrack generate: --cache does not take {', '.join(clashing)} "
+            f"(a cached world is identified by layout, preset, sensor, seed"
+            f"{' and version' if args.layout == 'nuscenes' else ' and --from-labels'})",
+            file=sys.stderr,
+        )
+        return 2
+    progress = False if args.no_progress else None
+    try:
+        if args.layout == "nuscenes":
+            root = ensure_nuscenes_world(
+                args.preset,
+                args.sensor or "hdl32",
+                args.seed,
+                args.version or DEFAULT_VERSION,
+                progress=progress,
+            )
+        else:
+            root = ensure_world(
+                args.preset, args.sensor or "hdl64", args.seed, args.from_labels, progress=progress
+            )
+    except (ValueError, OSError) as exc:
+        print(f"pointtrack generate: {exc}", file=sys.stderr)
+        return 2
+    print(root)
     return 0
