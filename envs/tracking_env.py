@@ -1,11 +1,10 @@
 """The Gymnasium environment for 3D single-object tracking in LiDAR point clouds.
 
 One episode is one tracklet (or a clip of one). See :class:`TrackingEnv` for the contract and
-its version history; :func:`make_tracking_env` is the one factory (the registered ids' entry
-points :func:`make_synthetic_env` and :func:`make_kitti_env` call it). Around the env:
-:mod:`envs.spec` (the contract and the options), :mod:`envs.episodes` (scheduling),
-:mod:`envs.template` (template modes), :mod:`envs.scan_cache` (crops), :mod:`envs.rewards`,
-:mod:`envs.observation` (cropping, resampling, the space), :mod:`envs.sources` (data).
+its version history; :func:`make_tracking_env` is the one factory (the entry points of the
+registered ids, :func:`make_synthetic_env` and :func:`make_kitti_env`, call it). Around the env:
+:mod:`envs.spec` (contract, options), :mod:`envs.episodes` (scheduling), :mod:`envs.template`,
+:mod:`envs.scan_cache` (crops), :mod:`envs.rewards`, :mod:`envs.observation`, :mod:`envs.sources`.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from envs.data import Setting, get_setting
+from envs.data import Setting, check_setting_layout, get_setting
 from envs.data.toy import make_toy_dataset
 from envs.data.tracklet import Tracklet
 from envs.episodes import EpisodeSchedule
@@ -659,7 +658,7 @@ def make_tracking_env(
         source: a named source of :data:`envs.spec.SOURCES` (``"synthetic"``, ``"kitti"``,
             ``"nuscenes"``), read at ``split`` (default :data:`envs.spec.DEFAULT_SPLITS`), or a
             dataset (anything with ``.tracklets``; shared, not copied).
-        setting: the class-agnostic setting.
+        setting: the class-agnostic setting (a named source's: ``ValueError`` otherwise).
         categories: the categories to serve (default: the setting's); a named source reads only
             these categories.
         options: the env's :class:`envs.spec.EnvOptions`.
@@ -671,6 +670,8 @@ def make_tracking_env(
     """
     source_kwargs = {k: kwargs.pop(k) for k in SOURCE_KEYWORDS if k in kwargs}
     if isinstance(source, str):
+        if setting is not None:  # a setting of the source's layout, before any data is read
+            check_setting_layout(setting, "nuscenes" if source == "nuscenes" else "kitti")
         split = DEFAULT_SPLITS.get(source) if split is None else split
         load = (categories,) if isinstance(categories, str) else categories
         if load is None and setting is not None:
@@ -688,9 +689,8 @@ def make_tracking_env(
 
 
 def make_synthetic_env(**kwargs: Any) -> TrackingEnv:
-    """Entry point of ``pointtrack/Synthetic-v1``: :func:`make_tracking_env` of the synthetic
-    world ``(preset, sensor, seed)`` (defaults ``"small"``, ``"hdl64"``, 0; generated into the
-    cache on first use, read as KITTI), split ``"train"`` by default."""
+    """Entry point of ``pointtrack/Synthetic-v1``: :func:`make_tracking_env` of the synthetic world
+    ``(preset, sensor, seed)`` (default small / hdl64 / 0, cached, KITTI layout), split train."""
     return make_tracking_env("synthetic", **kwargs)
 
 

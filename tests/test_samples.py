@@ -184,13 +184,25 @@ def test_load_tracklets_refuses_a_world_lacking_an_observed_category():
         ("nuscenes", "kitti-2", "nuscenes-1, nuscenes-2"),
     ],
 )
-def test_a_setting_of_the_other_layout_is_refused_before_any_data(dataset, setting, supported):
+def test_a_setting_of_the_other_layout_is_refused_before_any_data(
+    dataset, setting, supported, tmp_path, capsys
+):
+    from envs.tracking_env import make_tracking_env
+    from training.cli import main
     from training.config import ConfigError, TrainConfig
     from training.samples import load_tracklets
 
-    with pytest.raises(
-        ValueError, match=f"{setting!r} is not one of a .*; it supports {supported}"
-    ):
+    message = f"{setting!r} is not one of a .*; it supports {supported}"
+    with pytest.raises(ValueError, match=message):
         load_tracklets(dataset, "train", setting=setting, preset="does-not-exist")
     with pytest.raises(ConfigError, match=f"setting='{setting}'.*supports {supported}"):
         TrainConfig(dataset=dataset, setting=setting).validate()
+    with pytest.raises(ValueError, match=message):  # the env factory: eval, select, render, RL
+        make_tracking_env(dataset, setting=setting, preset="does-not-exist")
+    world = ["--dataset", dataset, "--preset", "does-not-exist", "--setting", setting]
+    out = tmp_path / "out"
+    for command in (["eval", "--tracker"], ["select"]):
+        assert main([*command, "previous_box", *world, "--no-progress", "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"it supports {supported}" in err, err
+    assert not out.exists()

@@ -2,7 +2,13 @@
 
 from envs.data.kitti import KittiTracking
 from envs.data.nuscenes import NuScenesTracking
-from envs.data.settings import SETTINGS, Setting, class_specific, get_setting
+from envs.data.settings import (
+    SETTINGS,
+    Setting,
+    check_setting_layout,
+    class_specific,
+    get_setting,
+)
 from envs.data.tracklet import ScanCache, Tracklet
 
 __all__ = [
@@ -12,6 +18,7 @@ __all__ = [
     "ScanCache",
     "Setting",
     "Tracklet",
+    "check_setting_layout",
     "class_specific",
     "get_setting",
 ]

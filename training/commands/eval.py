@@ -25,6 +25,7 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
+from envs.data import check_setting_layout
 from envs.data.nuscenes import SOT_SPLITS
 from envs.tracking_env import TEMPLATE_MODES, make_tracking_env
 
@@ -422,6 +423,9 @@ def check_args(args: argparse.Namespace) -> EvalPlan:
         workers = resolve_workers(
             args.workers if args.workers is not None or not one_process else 1, "--workers"
         )
+        setting = env_kwargs(args)["setting"]  # the env refuses it too; here before --out
+        if setting is not None:
+            check_setting_layout(setting, "nuscenes" if args.dataset == "nuscenes" else "kitti")
     except ValueError as exc:
         raise SystemExit(f"pointtrack eval: {exc}") from exc
     oracle = None if args.reference == "prediction" else args.reference

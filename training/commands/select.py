@@ -36,10 +36,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="synthetic world splits pooled into one score (default: %(default)s)",
     )
     parser.add_argument(
-        "--setting", default="kitti-1", help="its observed categories are scored (default: kitti-1)"
+        "--setting",
+        default=None,
+        help="its observed categories are scored (default: kitti-1; nuscenes-1 with --dataset "
+        "nuscenes)",
     )
     parser.add_argument("--preset", default="default", help="synthetic preset (default: default)")
-    parser.add_argument("--sensor", default="hdl64", help="synthetic sensor (default: hdl64)")
+    parser.add_argument(
+        "--sensor",
+        default=None,
+        help="synthetic sensor (default: hdl64; hdl32 with --dataset nuscenes)",
+    )
     parser.add_argument(
         "--dataset",
         choices=("synthetic", "nuscenes"),
@@ -111,10 +118,11 @@ def run(args: argparse.Namespace) -> int:
         from training.parallel import resolve_workers
 
         workers = 1 if args.num_envs > 1 and args.workers is None else args.workers
+        nuscenes = args.dataset == "nuscenes"
         config = SelectionConfig(
-            setting=args.setting,
+            setting=args.setting or ("nuscenes-1" if nuscenes else "kitti-1"),
             preset=args.preset,
-            sensor=args.sensor,
+            sensor=args.sensor or ("hdl32" if nuscenes else "hdl64"),
             parts=tuple(ValPart.parse(p) for p in args.parts),
             train_world_seed=args.train_world,
             eval_seed=args.eval_seed,
