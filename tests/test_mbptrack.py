@@ -103,6 +103,18 @@ def test_registered_with_default_and_slim_widths():
     assert MBPTrack.sample_recipe == "memory"
 
 
+def test_light_size_is_slim_with_less_per_frame_work_and_mbptracks_alone():
+    slim, light = (trackers.size_config("mbptrack", s) for s in ("slim", "light"))
+    changed = {k: v for k, v in light.items() if slim.get(k) != v}
+    assert changed == {"layers": 1, "box_grid": [2, 2, 3], "aggr_neighbours": 4, "neighbours": 8}
+    model = trackers.make("mbptrack", **light).eval()
+    out = model(_inputs(_batch(b=2, n=1024, m=3)))
+    assert out["proposals"].shape == (2, 32, 4) and torch.isfinite(out["proposals"]).all()
+    assert len(model.transformer) == 1 and model.loc.grid.shape == (12, 3)
+    with pytest.raises(ValueError, match="'p2b' has no model size 'light'; valid: "):
+        trackers.size_config("p2b", "light")
+
+
 def test_box_prior_grid_is_the_shrunk_cell_centres():
     grid = box_prior_offsets(3, 3, 5)
     assert grid.shape == (45, 3)

@@ -43,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--model-size",
         dest="model_size",
         choices=sizes,
-        help="tracker widths: the papers' (default) or slim (CPU training)",
+        help="tracker widths: the papers' (default), slim (CPU training) or, for MBPTrack, light "
+        "(slim with less per-frame work)",
     )
     parser.add_argument(
         "--weighting",
