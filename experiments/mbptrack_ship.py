@@ -94,7 +94,7 @@ def ship(
     the shipped file itself and ``previous_box``); the recipe says the run directories ``runs``
     (default: ``select``'s parent) are not kept; -> whether it shipped."""
     first = ranking(select / "selection.json")[0]["candidate"]
-    if first in (not_if or PREDECESSORS[name.rsplit("-", 1)[-1]]):
+    if first in (not_if or PREDECESSORS[name.split("-")[2]]):  # mbptrack-kitti1-ARM[-light]
         print(f"{name}: not shipped ({first} ranks first)")
         return False
     source = select / f"{name}.safetensors"
@@ -164,7 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     first.add_argument("candidates", nargs="+")
     shipping = sub.add_parser("ship")
     shipping.add_argument("select", type=Path)
-    shipping.add_argument("name", choices=("mbptrack-kitti1-u", "mbptrack-kitti1-w"))
+    shipping.add_argument(
+        "name", choices=("mbptrack-kitti1-u", "mbptrack-kitti1-w", "mbptrack-kitti1-u-light")
+    )
     shipping.add_argument("--command", action="append", default=[])
     shipping.add_argument(
         "--not-if",

@@ -594,6 +594,11 @@ def test_mbptrack_ship_ships_only_where_the_mbptrack_run_ranks_first(tmp_path, c
     recipe_text = (recipes / "mbptrack-kitti1-u.yaml").read_text()
     assert "(docs/mbptrack.md)" in recipe_text.splitlines()[0]
     assert yaml.safe_load(recipe_text)["commands"] == ["make it"]
+    light = "mbptrack-kitti1-u-light"  # gated on the -U predecessors by default
+    trackers.save(tracker, select / f"{light}.safetensors")
+    (select / "selection.json").write_text(json.dumps({"ranking": [{"candidate": order[-1]}]}))
+    assert not script.ship(select, light, ["make it"], shipped, recipes)
+    assert f"{light}: not shipped (bat-kitti1-u ranks first)" in capsys.readouterr().out
     held = ("mbptrack-kitti1-u", "previous_box")  # the hold selection: the file itself first
     (select / "selection.json").write_text(json.dumps({"ranking": [{"candidate": held[0]}]}))
     assert not script.ship(select, held[0], ["make it"], shipped, recipes, not_if=held)
