@@ -9,25 +9,14 @@
 #   bash experiments/mbptrack_light.sh [ROOT]    # default runs/mbptrack-light
 set -euo pipefail
 root=${1:-runs/mbptrack-light}
-export DEVICE=${DEVICE:-cpu} OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
-source experiments/train_commands.sh
-mbptrack=(--size-jitter 0 --set adam_beta1=0.5 --set adam_eps=1e-6)
-world=(--preset default --seed 0 --setting kitti-1)
+source experiments/mbptrack_common.sh
 predecessors=(p2b-kitti1-u bat-kitti1-u gpt-kitti1-u)
 name=mbptrack-kitti1-u-light
 mkdir -p "$root/logs"
 
-train_seed() {  # SEED
-  local out=$root/mbptrack-light-s$1 resume=()
-  if [ -e "$out/done" ]; then return; fi
-  if [ -e "$out/config.yaml" ]; then resume=(--resume); fi
-  train_u mbptrack kitti-1 light 0 0 --epochs 32 --set lr_step_epochs=21 --set val_every=4 \
-    "${mbptrack[@]}" --seed "$1" --out "$out" "${resume[@]}" >"$root/logs/s$1.log" 2>&1
-  touch "$out/done"
-}
-
-train_seed 0 &
-train_seed 1 &
+for seed in 0 1; do
+  train_mbptrack_u light "$seed" "$root/mbptrack-light-s$seed" "$root/logs/s$seed.log" &
+done
 wait
 if [ "${STAGE:-all}" = train ]; then exit 0; fi
 

@@ -8,28 +8,13 @@
 #   bash experiments/mbptrack_ship.sh [ROOT]    # default runs/mbptrack-ship
 set -euo pipefail
 root=${1:-runs/mbptrack-ship}
-export DEVICE=${DEVICE:-cpu} OMP_NUM_THREADS=1 PYTHONUNBUFFERED=1
-source experiments/train_commands.sh
-mbptrack=(--size-jitter 0 --set adam_beta1=0.5 --set adam_eps=1e-6)
-world=(--preset default --seed 0 --setting kitti-1)
+source experiments/mbptrack_common.sh
 predecessors=(p2b-kitti1-u bat-kitti1-u gpt-kitti1-u p2b-kitti1-w bat-kitti1-w gpt-kitti1-w)
 mkdir -p "$root/logs"
 
-resume_flag() {  # OUT: --resume where OUT holds an unfinished run
-  if [ -e "$1/config.yaml" ]; then echo --resume; fi
-}
-
-train_u_seed() {  # SEED
-  local out=$root/mbptrack-u-s$1
-  if [ -e "$out/done" ]; then return; fi
-  # shellcheck disable=SC2046 # an empty or one-word flag
-  train_u mbptrack kitti-1 slim 0 0 --epochs 32 --set lr_step_epochs=21 --set val_every=4 \
-    "${mbptrack[@]}" --seed "$1" --out "$out" $(resume_flag "$out") >"$root/logs/u-s$1.log" 2>&1
-  touch "$out/done"
-}
-
-train_u_seed 0 &
-train_u_seed 1 &
+for seed in 0 1; do
+  train_mbptrack_u slim "$seed" "$root/mbptrack-u-s$seed" "$root/logs/u-s$seed.log" &
+done
 wait
 if [ "${STAGE:-all}" = train ]; then exit 0; fi
 
