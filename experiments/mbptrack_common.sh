@@ -17,3 +17,11 @@ train_mbptrack_u() {  # SIZE SEED OUT LOG: a -U run at the shipped budget, kept 
     "${mbptrack[@]}" --seed "$2" --out "$3" $(resume_flag "$3") >"$4" 2>&1
   touch "$3/done"
 }
+
+train_mbptrack_u_seeds() {  # SIZE ROOT TAG: seeds 0 and 1 side by side into ROOT/mbptrack-TAG-sSEED
+  local seed
+  for seed in 0 1; do
+    train_mbptrack_u "$1" "$seed" "$2/mbptrack-$3-s$seed" "$2/logs/$3-s$seed.log" &
+  done
+  wait
+}

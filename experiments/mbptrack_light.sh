@@ -14,10 +14,7 @@ predecessors=(p2b-kitti1-u bat-kitti1-u gpt-kitti1-u)
 name=mbptrack-kitti1-u-light
 mkdir -p "$root/logs"
 
-for seed in 0 1; do
-  train_mbptrack_u light "$seed" "$root/mbptrack-light-s$seed" "$root/logs/s$seed.log" &
-done
-wait
+train_mbptrack_u_seeds light "$root" light
 if [ "${STAGE:-all}" = train ]; then exit 0; fi
 
 runs=("$root"/mbptrack-light-s{0,1}/best.pt)

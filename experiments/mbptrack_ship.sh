@@ -12,10 +12,7 @@ source experiments/mbptrack_common.sh
 predecessors=(p2b-kitti1-u bat-kitti1-u gpt-kitti1-u p2b-kitti1-w bat-kitti1-w gpt-kitti1-w)
 mkdir -p "$root/logs"
 
-for seed in 0 1; do
-  train_mbptrack_u slim "$seed" "$root/mbptrack-u-s$seed" "$root/logs/u-s$seed.log" &
-done
-wait
+train_mbptrack_u_seeds slim "$root" u
 if [ "${STAGE:-all}" = train ]; then exit 0; fi
 
 # -W from the -U run with the higher trainer val Success (seed 0 on a tie)
