@@ -577,13 +577,23 @@ def test_cuda_forward_matches_cpu():
     np.testing.assert_allclose(model.act(obs), model.to("cpu").act(obs), atol=1e-4)
 
 
-@pytest.mark.parametrize("name", ["mbptrack-kitti1-u", "mbptrack-kitti1-w"])
-def test_shipped_file_loads_acts_and_records_its_provenance(name, toy):
-    """The shipped MBPTrack files (docs/mbptrack.md, "Shipped-budget runs"): slim, trained on
-    the `default` world's kitti-1 observed categories, chosen by `pointtrack select`; they act
-    on an env serving the memory, the same action twice (no hidden state)."""
+@pytest.mark.parametrize(
+    ("name", "size"),
+    [
+        ("mbptrack-kitti1-u", "slim"),
+        ("mbptrack-kitti1-w", "slim"),
+        ("mbptrack-kitti1-u-light", "light"),
+    ],
+)
+def test_shipped_file_loads_acts_and_records_its_provenance(name, size, toy):
+    """The shipped MBPTrack files (docs/mbptrack.md, "Shipped-budget runs", "A `light` size"):
+    of their model size, trained on the `default` world's kitti-1 observed categories, chosen
+    by `pointtrack select`; they act on an env serving the memory, the same action twice (no
+    hidden state)."""
     tracker = trackers.load(name)
     assert isinstance(tracker, MBPTrack) and tracker.config.memory_frames == 3
+    for key, value in trackers.size_config("mbptrack", size).items():
+        assert getattr(tracker.config, key) == value, key
     provenance = tracker.provenance
     assert (provenance.preset, provenance.setting, provenance.world_seed) == (
         "default",

@@ -136,7 +136,7 @@ def test_available_lists_kinds_in_order():
     others = {"p2b-kitti1-drct", "m2track-kitti1-u", "m2track-kitti1-w"}
     others |= {"p2b-kitti1-u-rl", "gpt-kitti1-u-rl", "p2b-kitti2-u", "p2b-kitti2-w"}
     others |= {"p2b-kitti2-s"}  # a Table IV pilot file (docs/checkpoints.md)
-    others |= {"mbptrack-kitti1-u", "mbptrack-kitti1-w"}  # docs/mbptrack.md
+    others |= {"mbptrack-kitti1-u", "mbptrack-kitti1-w", "mbptrack-kitti1-u-light"}  # mbptrack.md
     assert set(shipped) == matching | others
     for name in ("p2b", "bat", "gpt"):  # the matching trackers (m2track: tests/test_m2track.py)
         assert trackers.size_config(name, "default") == {}
