@@ -29,6 +29,8 @@ __all__ = [
     "iou_3d",
     "iou_bev",
     "iou_pair",
+    "invert_rigid",
+    "map_points",
     "offset_between",
     "offset_between_pair",
     "points_in_box",
@@ -81,6 +83,20 @@ def box_corners(boxes: np.ndarray) -> np.ndarray:
     boxes = np.asarray(boxes, dtype=np.float64)
     local = boxes[..., None, 3:6] * _CORNER_SIGNS
     return box_to_world(local, boxes)
+
+
+def map_points(points: np.ndarray, rigid: np.ndarray) -> np.ndarray:
+    """``(N, C >= 3)`` points with their xyz mapped by ``rigid``, a ``(3, 4)`` ``[R | t]``
+    (``R p + t``, in float64); a copy of the points' dtype, the other columns unchanged."""
+    out = points.copy()
+    out[:, :3] = points[:, :3].astype(np.float64) @ rigid[:, :3].T + rigid[:, 3]
+    return out
+
+
+def invert_rigid(rigid: np.ndarray) -> np.ndarray:
+    """The inverse ``(3, 4)`` map of a rigid ``[R | t]`` (``R`` orthonormal): ``[R^T | -R^T t]``."""
+    rotation = rigid[:, :3].T
+    return np.c_[rotation, -rotation @ rigid[:, 3]]
 
 
 def world_to_box(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:

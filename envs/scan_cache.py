@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from envs.data.tracklet import Tracklet
+from envs.geometry import invert_rigid, map_points
 from envs.kernels import cell_sort_kernel
 from envs.observation import (
     SEARCH_OFFSET_M,
@@ -62,21 +63,10 @@ to the whole scan of a frame before any cropping (the weather hook). Must be pic
 deterministic given ``(tracklet_id, scene_frame)`` (corrupted scans are cached)."""
 
 
-def check_scan_transform(transform: ScanTransform | None, dataset: object) -> ScanTransform | None:
-    """``transform`` itself, once it is ``None`` or a callable the ``dataset``'s frame allows:
-    the weather models range from a sensor at the origin, so a dataset serving scans in another
-    frame than each scan's own LiDAR frame (nuScenes' ``frame="scene"``) refuses one."""
-    if transform is None:
-        return None
-    if not callable(transform):
+def check_scan_transform(transform: ScanTransform | None) -> ScanTransform | None:
+    """``transform`` itself, once it is ``None`` or a callable."""
+    if transform is not None and not callable(transform):
         raise TypeError(f"scan_transform must be callable; got {type(transform).__name__}")
-    frame = getattr(dataset, "frame", "lidar")
-    if frame != "lidar":
-        raise ValueError(
-            f"scan_transform on data served in the {frame!r} frame: the weather (and any "
-            "range-dependent transform) needs each scan in its own LiDAR frame; open the data "
-            "with frame='lidar'"
-        )
     return transform
 
 
@@ -381,16 +371,20 @@ class TrackletScans:
     def _load(self, t: int) -> np.ndarray:
         tr = self.tracklet
         pts = tr.points_with_intensity(t)
-        if self.transform is not None:
-            pts = np.asarray(
-                self.transform(pts, tr.tracklet_id, int(tr.frames[t])), dtype=np.float32
+        if self.transform is None:
+            return pts
+        # the weather models range from the sensor: a scan served in another frame (nuScenes'
+        # scene frame) is transformed in its own LiDAR frame and mapped back
+        pose = None if tr.sensor_poses is None else tr.sensor_poses[t]
+        if pose is not None:
+            pts = map_points(pts, invert_rigid(pose))
+        pts = np.asarray(self.transform(pts, tr.tracklet_id, int(tr.frames[t])), dtype=np.float32)
+        if pts.ndim != 2 or pts.shape[1] < 3:
+            raise ValueError(
+                f"scan_transform returned shape {pts.shape} for {tr.tracklet_id} frame "
+                f"{int(tr.frames[t])}; expected (N, 4)"
             )
-            if pts.ndim != 2 or pts.shape[1] < 3:
-                raise ValueError(
-                    f"scan_transform returned shape {pts.shape} for {tr.tracklet_id} frame "
-                    f"{int(tr.frames[t])}; expected (N, 4)"
-                )
-        return pts
+        return pts if pose is None else map_points(pts, pose)
 
     def index(self, t: int) -> FrameIndex:
         """The corridor index of frame ``t`` (built on first use)."""

@@ -210,7 +210,7 @@ class TrackingEnv(gym.Env):
         self.search_enlargement, self.reference = options.search_enlargement, options.reference
         self.max_action = a_max = np.array(options.max_action, dtype=np.float64)
         self.render_mode = options.render_mode
-        self.scan_transform = check_scan_transform(options.scan_transform, self.dataset)
+        self.scan_transform = check_scan_transform(options.scan_transform)
         self.corridor_m, self.cell_m = options.corridor_m, options.cell_m
         self.cache_mb = options.cache_mb
         self._schedule = EpisodeSchedule(self.tracklets, options)
@@ -290,7 +290,7 @@ class TrackingEnv(gym.Env):
         """Install (or remove, ``None``) the whole-scan transform and drop the scan cache, so no
         scan made under the previous transform is served again. Crops already taken in the
         current episode (its templates) stay; install before ``reset`` for clean episodes."""
-        self.scan_transform = check_scan_transform(transform, self.dataset)
+        self.scan_transform = check_scan_transform(transform)
         self._crop_cache.clear(transform)
         if self._tracklet is not None:
             self._entry = self._scans(self._index)

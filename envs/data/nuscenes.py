@@ -50,6 +50,7 @@ from envs.data.nuscenes_poses import (
     quaternion_to_matrix,
 )
 from envs.data.tracklet import ScanCache, Tracklet, check_categories
+from envs.geometry import map_points
 
 __all__ = [
     "CATEGORY_MAP",
@@ -225,8 +226,7 @@ class NuScenesScans:
         except (FileNotFoundError, ValueError) as exc:
             raise type(exc)(f"nuScenes scene {self.scene} key frame {int(frame)}: {exc}") from None
         if self.to_reference is not None:
-            m = self.to_reference[int(frame)]
-            points[:, :3] = points[:, :3].astype(np.float64) @ m[:, :3].T + m[:, 3]
+            points = map_points(points, self.to_reference[int(frame)])
         return points
 
     def __repr__(self) -> str:
@@ -520,6 +520,7 @@ class NuScenesTracking:
         boxes = self._boxes(t, rows, lidar_sd[pose_samples])
         starts = np.concatenate([[0], np.flatnonzero(~same) + 1, [len(rows)]])
         caches: dict[int, ScanCache] = {}
+        scene_maps: dict[int, np.ndarray | None] = {}  # scene -> its key frames' maps
         sd = t["sample_data"].records
         track_in_scene: dict[int, int] = {}
         for a, b in zip(starts[:-1], starts[1:], strict=True):
@@ -529,6 +530,7 @@ class NuScenesTracking:
                 sd_rows = lidar_sd[scene_samples[k]]
                 files = [sd[int(j)]["filename"] for j in sd_rows]
                 maps = None if frame == "lidar" else lidar_to_reference(*_poses(t, sd_rows))
+                scene_maps[k] = maps
                 caches[k] = ScanCache(NuScenesScans(self.root, name, files, maps), cache_size)
             track_id = track_in_scene.get(k, 0)
             track_in_scene[k] = track_id + 1
@@ -542,6 +544,7 @@ class NuScenesTracking:
                     frames=frame_of[a:b].copy(),
                     boxes=boxes[a:b].copy(),
                     scans=caches[k],
+                    sensor_poses=None if scene_maps[k] is None else scene_maps[k][frame_of[a:b]],
                 )
             )
             self.instance_tokens.append(t["instance"].records[inst]["token"])

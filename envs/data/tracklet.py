@@ -50,8 +50,13 @@ class Tracklet:
         track_id: the target's track id in the scene.
         category: e.g. ``"Car"``.
         frames: ``(T,)`` int frame indices in the scene, increasing.
-        boxes: ``(T, 7)`` float64 boxes, each in its own frame's LiDAR frame.
+        boxes: ``(T, 7)`` float64 boxes, each in its own frame's LiDAR frame (or in the
+            frame of ``sensor_poses``).
         scans: loader of whole scans by frame index (see :data:`ScanLoader`).
+        sensor_poses: ``None`` when each frame is served in its own LiDAR frame, else ``(T, 3,
+            4)`` rigid maps ``[R | t]`` from each frame's LiDAR frame into the one its points
+            and boxes are served in (nuScenes' ``frame="scene"``): where the sensor was, for
+            transforms that model range from it (the weather).
     """
 
     tracklet_id: str
@@ -61,6 +66,7 @@ class Tracklet:
     frames: np.ndarray
     boxes: np.ndarray
     scans: ScanLoader = field(repr=False)
+    sensor_poses: np.ndarray | None = field(default=None, repr=False)
 
     def __len__(self) -> int:
         return len(self.frames)
