@@ -59,7 +59,8 @@ __all__ = [
 
 ScanTransform = Callable[[np.ndarray, str, int], np.ndarray]
 """``scan_transform(points (N, 4) float32, tracklet_id, scene_frame) -> (N', 4) float32``: applied
-to the whole scan of a frame before any cropping (the weather hook). Must be picklable and
+to the whole scan of a frame before any cropping (the weather hook), in the scan's own LiDAR
+frame (the sensor at the origin) whatever frame the data is served in. Must be picklable and
 deterministic given ``(tracklet_id, scene_frame)`` (corrupted scans are cached)."""
 
 

@@ -4,7 +4,6 @@
 # in its own setting, then one table per setting. Resumable: a finished tracker's weather.json
 # is kept. With ITEMS (SETTING=FILE pairs), those files instead of the shipped ones: the
 # descriptive grid of the follow-up's selected, unshipped files (docs/weather.md, "nuScenes-A").
-# Today the env refuses the weather on scene-frame data, so it stops there (docs/weather.md).
 #   bash experiments/weather_nuscenes.sh [OUT]   # default runs/weather-nus
 #   ITEMS="nuscenes-1=a.safetensors nuscenes-2=b.safetensors" bash experiments/weather_nuscenes.sh OUT
 set -euo pipefail
