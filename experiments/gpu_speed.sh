@@ -6,7 +6,8 @@
 # Measures act frames/s at batch 1 and 32, eval frames/s, finetune env steps/s and training
 # samples/s (experiments/gpu_speed.py says how); the device and the CPU measurements run side
 # by side, each in its own single-threaded processes (the machine has 16 cores). Set-up (wheels,
-# PYTHONPATH, $OUT): experiments/gpu_common.sh.
+# PYTHONPATH, $OUT): experiments/gpu_common.sh; the wheels come from `bash experiments/gpu_wheels.sh`
+# here, carried along (`carry: [".whl"]`).
 set -euo pipefail
 DEVICE_ARG=cuda
 if [ "${1:-}" = "--device" ]; then
