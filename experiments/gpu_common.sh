@@ -1,7 +1,7 @@
 # Sourced by the experiments/gpu_*.sh scripts: set-up on the lent GPU machine, then the
 # registered -U / -W training commands (experiments/train_commands.sh). The device image has torch
 # but not gymnasium / platformdirs / stable-baselines3: those travel as wheels in .whl
-# (docs/performance.md, "GPU"). Outputs go under $OUT (/tmp/gpu-out elsewhere).
+# (`bash experiments/gpu_wheels.sh`; docs/performance.md, "GPU"). Outputs go under $OUT (/tmp/gpu-out elsewhere).
 # DEVICE=cpu SMOKE=1 runs the same commands for a few steps on the CPU, to check a script
 # before spending device time on it.
 OUT=${OUT:-/tmp/gpu-out}
